@@ -1,0 +1,1 @@
+"""Benchmarks run by `sgde bench`; each module exposes `run(fast: bool) -> dict`."""

@@ -1,0 +1,1 @@
+"""Prior cache: zarr store, builds, the read API and the training-side dataset."""

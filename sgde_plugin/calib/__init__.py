@@ -1,0 +1,1 @@
+"""Surround-view self-calibration with the geometric loop constraint."""

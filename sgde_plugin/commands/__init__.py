@@ -1,0 +1,1 @@
+"""Command modules of the `sgde` command line, one per sub-command."""

@@ -1,0 +1,20 @@
+"""The one exception type for bad user input: the CLI turns it into one line and exit code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(Exception):
+    """Bad input named by file, key and problem; printed as `file: key: problem`."""
+
+    def __init__(self, file: str | Path | None, key: str | None, problem: str):
+        self.file = str(file) if file is not None else None
+        self.key = key
+        self.problem = problem
+        super().__init__(self.line())
+
+    def line(self) -> str:
+        """The single line shown to the user."""
+        parts = [p for p in (self.file, self.key) if p]
+        return ": ".join([*parts, self.problem])

@@ -1,0 +1,127 @@
+"""File helpers: atomic writes, depth PNGs (KITTI convention), images and their sizes."""
+
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+
+DEPTH_PNG_SCALE = 256.0
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary sibling path; rename it onto `path` only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write bytes to `path` through a temporary name and a rename."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write text (UTF-8) to `path` through a temporary name and a rename."""
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def encode_png(array: np.ndarray) -> bytes:
+    """PNG bytes of a uint8 (HxW or HxWx3 RGB) or uint16 (HxW) array."""
+    if array.ndim == 3:
+        array = cv2.cvtColor(array, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", array)
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def write_image(path: str | Path, rgb: np.ndarray) -> None:
+    """Write an 8-bit RGB (or grey) image atomically; format from the suffix (.png or .jpg)."""
+    path = Path(path)
+    if path.suffix.lower() == ".png":
+        atomic_write_bytes(path, encode_png(rgb))
+        return
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
+    ok, buf = cv2.imencode(path.suffix, bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:
+        raise RuntimeError(f"encoding {path} failed")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an 8-bit colour image as HxWx3 RGB uint8; InputError if unreadable."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(path, None, "cannot read image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def depth_to_png_array(depth_m: np.ndarray) -> np.ndarray:
+    """Metres -> uint16 depth-PNG values (round(d * 256), 0 = no value, clipped at 255.99 m)."""
+    d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    d = np.where(d > 0, d, 0.0)
+    return np.clip(np.round(d * DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
+
+
+def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
+    """Write metric depth as a KITTI-convention uint16 PNG, atomically."""
+    atomic_write_bytes(path, encode_png(depth_to_png_array(depth_m)))
+
+
+def read_depth_png(path: str | Path) -> np.ndarray:
+    """Read a KITTI-convention depth PNG to float32 metres (0 = no value)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
+        raise InputError(path, None, "not a single-channel uint16 depth PNG")
+    return raw.astype(np.float32) / DEPTH_PNG_SCALE
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    """Read a static mask PNG as bool HxW (True = use, 0 in the file = ignore)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if raw is None:
+        raise InputError(path, None, "cannot read mask")
+    return raw > 0
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of a PNG or JPEG from its header, without decoding the pixels."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(32)
+        if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+            w, h = struct.unpack(">II", head[16:24])
+            return int(w), int(h)
+        if head[:2] == b"\xff\xd8":
+            f.seek(2)
+            while True:
+                marker = f.read(2)
+                if len(marker) < 2 or marker[0] != 0xFF:
+                    break
+                if marker[1] in (0xD8, 0x01) or 0xD0 <= marker[1] <= 0xD7:
+                    continue
+                (length,) = struct.unpack(">H", f.read(2))
+                if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):
+                    _, h, w = struct.unpack(">BHH", f.read(5))
+                    return int(w), int(h)
+                f.seek(length - 2, os.SEEK_CUR)
+    raise InputError(path, None, "not a readable PNG or JPEG image")

@@ -1,0 +1,1 @@
+"""Dataset readers (nuScenes, DDAD, Synthetic Urban) into the common Rig."""

@@ -1,0 +1,1 @@
+"""Depth prior construction: virtual pinholes, overlap rectification, matching, back-projection."""

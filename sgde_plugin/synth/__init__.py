@@ -1,0 +1,1 @@
+"""The built-in synthetic surround world: procedural street scenes, rendering, rig presets."""
