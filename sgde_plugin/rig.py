@@ -1,0 +1,325 @@
+"""The `Rig` (cameras, extrinsics, adjacent pairs, frames) and the `sgde-rig/1` folder format."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .cameras import Camera, _matrix, intrinsics_from_dict
+from .errors import InputError
+from .geometry import ORTHONORMAL_TOL, rotation_error
+from .io import atomic_write_text, image_size, read_depth_png, read_image, read_mask
+
+FORMAT = "sgde-rig/1"
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One time step: id, timestamp (microseconds), ego pose, and where its files are (not compared)."""
+
+    id: str
+    timestamp_us: int
+    ego_to_world: np.ndarray = field(default_factory=lambda: np.eye(4))
+    images: Mapping[str, Path] = field(default_factory=dict)
+    depths: Mapping[str, Path] = field(default_factory=dict)
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The frame's `rig.json` entry (unknown keys kept)."""
+        return {
+            **dict(self.extra),
+            "id": self.id,
+            "timestamp_us": int(self.timestamp_us),
+            "ego_to_world": np.asarray(self.ego_to_world, dtype=np.float64).tolist(),
+        }
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Frame) and self.to_dict() == other.to_dict()
+
+    def __hash__(self) -> int:
+        return hash(self.id)
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """A camera rig and its frames. `pairs` are the adjacent camera pairs (from `ring` or explicit)."""
+
+    cameras: tuple[Camera, ...]
+    pairs: tuple[tuple[str, str], ...]
+    frames: tuple[Frame, ...]
+    ring: tuple[str, ...] | None = None
+    root: Path | None = None
+    masks: Mapping[str, Path] = field(default_factory=dict)
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    # --- look-ups ---------------------------------------------------------------------------
+    @property
+    def camera_names(self) -> list[str]:
+        """Camera names in file order."""
+        return [c.name for c in self.cameras]
+
+    def camera(self, name: str) -> Camera:
+        """The camera called `name`."""
+        for cam in self.cameras:
+            if cam.name == name:
+                return cam
+        raise KeyError(name)
+
+    def frame(self, frame_id: str) -> Frame:
+        """The frame with id `frame_id`."""
+        for fr in self.frames:
+            if fr.id == frame_id:
+                return fr
+        raise KeyError(frame_id)
+
+    def load_image(self, frame_id: str, camera: str) -> np.ndarray:
+        """RGB uint8 image (H, W, 3) of one camera in one frame."""
+        path = self.frame(frame_id).images.get(camera)
+        if path is None:
+            raise InputError(self.root, f"frames/{frame_id}/{camera}", "no image")
+        return read_image(path)
+
+    def load_depth(self, frame_id: str, camera: str) -> np.ndarray | None:
+        """Ground-truth depth in metres (0 = none), or None when the rig has none."""
+        path = self.frame(frame_id).depths.get(camera)
+        return None if path is None else read_depth_png(path)
+
+    def load_mask(self, camera: str) -> np.ndarray | None:
+        """Static mask (True = use), or None when the rig has none for this camera."""
+        path = self.masks.get(camera)
+        return None if path is None else read_mask(path)
+
+    # --- derived rigs -----------------------------------------------------------------------
+    def with_extrinsics(self, sensor_to_ego: Mapping[str, np.ndarray]) -> Rig:
+        """The same rig with some cameras' sensor_to_ego replaced."""
+        cams = tuple(c.with_pose(sensor_to_ego[c.name]) if c.name in sensor_to_ego else c for c in self.cameras)
+        return replace(self, cameras=cams)
+
+    def with_extra(self, **extra: Any) -> Rig:
+        """The same rig with top-level keys added to `rig.json` (e.g. a calibration block)."""
+        return replace(self, extra={**dict(self.extra), **extra})
+
+    def subset_frames(self, start: int, stop: int) -> Rig:
+        """The same rig with frames[start:stop]."""
+        return replace(self, frames=self.frames[start:stop])
+
+    # --- serialisation ----------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The `rig.json` document (unknown top-level keys kept)."""
+        doc: dict[str, Any] = {k: v for k, v in self.extra.items() if k not in ("ring", "pairs")}
+        doc["format"] = FORMAT
+        doc["cameras"] = [c.to_dict() for c in self.cameras]
+        if self.ring is not None:
+            doc["ring"] = list(self.ring)
+        else:
+            doc["pairs"] = [list(p) for p in self.pairs]
+        doc["frames"] = [f.to_dict() for f in self.frames]
+        return doc
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Rig) and self.to_dict() == other.to_dict()
+
+    def __hash__(self) -> int:
+        return hash(tuple(self.camera_names))
+
+
+def ring_pairs(ring: list[str] | tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    """Adjacent pairs of a closed ring (last is adjacent to first)."""
+    n = len(ring)
+    if n < 2:
+        return ()
+    if n == 2:
+        return ((ring[0], ring[1]),)
+    return tuple((ring[i], ring[(i + 1) % n]) for i in range(n))
+
+
+def _transform(entry: dict, key: str, where: str, required: bool = True) -> np.ndarray:
+    if key not in entry and not required:
+        return np.eye(4)
+    T = _matrix(entry, key, (4, 4), where)
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise InputError(None, f"{where}.{key}", "last row must be [0, 0, 0, 1]")
+    err = rotation_error(T[:3, :3])
+    if err > ORTHONORMAL_TOL:
+        raise InputError(None, f"{where}.{key}", f"rotation is not orthonormal (error {err:.2g} > 1e-6)")
+    return T
+
+
+def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
+    """Build and check a Rig from a parsed `rig.json`; InputError names the offending key."""
+    if not isinstance(doc, dict):
+        raise InputError(None, None, "top level is not a JSON object")
+    if doc.get("format") != FORMAT:
+        raise InputError(None, "format", f"expected {FORMAT!r}, found {doc.get('format')!r}")
+    cams_doc = doc.get("cameras")
+    if not isinstance(cams_doc, list) or not cams_doc:
+        raise InputError(None, "cameras", "missing or empty")
+    cameras: list[Camera] = []
+    for i, entry in enumerate(cams_doc):
+        where = f"cameras[{i}]"
+        if not isinstance(entry, dict):
+            raise InputError(None, where, "not an object")
+        name = entry.get("name")
+        if not isinstance(name, str) or not name:
+            raise InputError(None, f"{where}.name", "missing or not a string")
+        where = f"cameras[{name}]"
+        if any(c.name == name for c in cameras):
+            raise InputError(None, where, "duplicate camera name")
+        cameras.append(Camera(name, intrinsics_from_dict(entry, where), _transform(entry, "sensor_to_ego", where)))
+    names = {c.name for c in cameras}
+
+    if ("ring" in doc) == ("pairs" in doc):
+        raise InputError(None, "ring/pairs", "a rig has exactly one of 'ring' and 'pairs'")
+    ring = None
+    if "ring" in doc:
+        ring_doc = doc["ring"]
+        if not isinstance(ring_doc, list) or not all(isinstance(n, str) for n in ring_doc):
+            raise InputError(None, "ring", "not a list of camera names")
+        for n in ring_doc:
+            if n not in names:
+                raise InputError(None, "ring", f"camera {n!r} does not exist")
+        if len(set(ring_doc)) != len(ring_doc):
+            raise InputError(None, "ring", "names a camera twice")
+        ring = tuple(ring_doc)
+        pairs = ring_pairs(ring)
+    else:
+        pairs_doc = doc["pairs"]
+        if not isinstance(pairs_doc, list):
+            raise InputError(None, "pairs", "not a list of pairs")
+        pairs_l = []
+        for i, p in enumerate(pairs_doc):
+            if not (isinstance(p, list) and len(p) == 2 and all(isinstance(n, str) for n in p)) or p[0] == p[1]:
+                raise InputError(None, f"pairs[{i}]", "not a pair of two different camera names")
+            for n in p:
+                if n not in names:
+                    raise InputError(None, f"pairs[{i}]", f"camera {n!r} does not exist")
+            pairs_l.append((p[0], p[1]))
+        pairs = tuple(pairs_l)
+
+    frames_doc = doc.get("frames", [])
+    if not isinstance(frames_doc, list):
+        raise InputError(None, "frames", "not a list")
+    frames: list[Frame] = []
+    seen: set[str] = set()
+    known = {"id", "timestamp_us", "ego_to_world"}
+    for i, entry in enumerate(frames_doc):
+        where = f"frames[{i}]"
+        if not isinstance(entry, dict):
+            raise InputError(None, where, "not an object")
+        fid = entry.get("id")
+        if not isinstance(fid, str) or not fid or "/" in fid:
+            raise InputError(None, f"{where}.id", "missing or not a plain string")
+        if fid in seen:
+            raise InputError(None, f"{where}.id", f"duplicate frame id {fid!r}")
+        seen.add(fid)
+        ts = entry.get("timestamp_us", i)
+        if not isinstance(ts, int) or isinstance(ts, bool):
+            raise InputError(None, f"{where}.timestamp_us", "not an integer")
+        pose = _transform(entry, "ego_to_world", f"frames[{fid}]", required=False)
+        extra = {k: v for k, v in entry.items() if k not in known}
+        frames.append(Frame(fid, ts, pose, extra=extra))
+    extra = {k: v for k, v in doc.items() if k not in ("format", "cameras", "ring", "pairs", "frames")}
+    return Rig(tuple(cameras), pairs, tuple(frames), ring, root, {}, extra)
+
+
+def read_rig_json(path: str | Path, root: Path | None = None) -> Rig:
+    """Read a `rig.json` file (no image checks); InputError names file, key and problem."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(path, None, f"bad JSON ({exc})") from None
+    try:
+        return rig_from_dict(doc, root)
+    except InputError as exc:
+        raise InputError(path, exc.key, exc.problem) from None
+
+
+def _find_image(folder: Path, camera: str) -> Path | None:
+    for suffix in IMAGE_SUFFIXES:
+        p = folder / f"{camera}{suffix}"
+        if p.exists():
+            return p
+    return None
+
+
+def attach_files(rig: Rig, root: Path) -> Rig:
+    """Locate images, depths and masks of an `sgde-rig/1` folder and attach their paths to the rig."""
+    frames = []
+    for fr in rig.frames:
+        images, depths = {}, {}
+        for cam in rig.camera_names:
+            img = _find_image(root / "frames" / fr.id, cam)
+            if img is not None:
+                images[cam] = img
+            dep = root / "depth" / fr.id / f"{cam}.png"
+            if dep.exists():
+                depths[cam] = dep
+        frames.append(replace(fr, images=images, depths=depths))
+    masks = {c: root / "masks" / f"{c}.png" for c in rig.camera_names if (root / "masks" / f"{c}.png").exists()}
+    return replace(rig, frames=tuple(frames), root=root, masks=masks)
+
+
+def read_rig_folder(root: str | Path, check_images: bool = False) -> Rig:
+    """Read an `sgde-rig/1` folder; with `check_images`, every image must exist and match its camera's size."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, None, "not a folder")
+    rig = attach_files(read_rig_json(root / "rig.json", root), root)
+    if check_images:
+        check_folder_files(rig)
+    return rig
+
+
+def check_folder_files(rig: Rig) -> None:
+    """Every frame has an image per camera whose size matches the camera; depth and masks likewise."""
+    assert rig.root is not None
+    for fr in rig.frames:
+        for cam in rig.cameras:
+            path = fr.images.get(cam.name)
+            if path is None:
+                raise InputError(rig.root / "frames" / fr.id, cam.name, "image missing")
+            _check_size(path, cam)
+            if cam.name in fr.depths:
+                _check_size(fr.depths[cam.name], cam)
+    for name, path in rig.masks.items():
+        _check_size(path, rig.camera(name))
+
+
+def _check_size(path: Path, cam: Camera) -> None:
+    w, h = image_size(path)
+    if (w, h) != (cam.width, cam.height):
+        raise InputError(path, "size", f"image is {w}x{h}, camera {cam.name} is {cam.width}x{cam.height}")
+
+
+def write_rig_json(rig: Rig, path: str | Path) -> None:
+    """Write `rig.json` atomically (temporary name + rename)."""
+    atomic_write_text(path, json.dumps(rig.to_dict(), indent=1) + "\n")
+
+
+def load_frame_images(rig: Rig, frame_id: str) -> dict[str, np.ndarray]:
+    """All cameras' RGB images of one frame."""
+    return {c: rig.load_image(frame_id, c) for c in rig.camera_names}
+
+
+__all__ = [
+    "FORMAT",
+    "Frame",
+    "Rig",
+    "attach_files",
+    "check_folder_files",
+    "load_frame_images",
+    "read_rig_folder",
+    "read_rig_json",
+    "rig_from_dict",
+    "ring_pairs",
+    "write_rig_json",
+]
