@@ -461,7 +461,8 @@ def _vector(entry: dict, key: str, where: str, lengths: tuple[int, ...] | None =
     except (TypeError, ValueError):
         raise InputError(None, f"{where}.{key}", "not a numeric list") from None
     if lengths is not None and arr.shape[0] not in lengths:
-        raise InputError(None, f"{where}.{key}", f"has {arr.shape[0]} values, expected {' or '.join(map(str, lengths))}")
+        expected = " or ".join(map(str, lengths))
+        raise InputError(None, f"{where}.{key}", f"has {arr.shape[0]} values, expected {expected}")
     if arr.shape[0] == 0 or not np.all(np.isfinite(arr)):
         raise InputError(None, f"{where}.{key}", "empty or not finite")
     return arr
