@@ -1,0 +1,64 @@
+"""Prior encoding and prior-channel stem (runtime ~2 s)."""
+
+import copy
+
+import pytest
+import torch
+import torchvision
+from torch import nn
+
+from sgde_plugin.nn import PriorChannelStem, PriorEncoding, find_first_conv, widen_first_conv
+
+
+def test_prior_encoding_values():
+    prior = torch.tensor([[[[0.0, 40.0], [100.0, -3.0]]]])
+    out = PriorEncoding(max_depth=80.0)(prior)
+    assert out.shape == (1, 1, 2, 2)
+    assert torch.equal(out, torch.tensor([[[[0.0, 0.5], [1.0, 0.0]]]]))
+    out2 = PriorEncoding(max_depth=80.0, with_validity=True)(prior)
+    assert out2.shape == (1, 2, 2, 2)
+    assert torch.equal(out2[:, 1], torch.tensor([[[0.0, 1.0], [1.0, 0.0]]]))
+
+
+def test_widened_conv_init():
+    torch.manual_seed(0)
+    conv = nn.Conv2d(3, 4, 3, padding=1, bias=True)
+    wide = widen_first_conv(conv, extra_channels=1, validity=True)
+    assert wide.in_channels == 5
+    assert torch.equal(wide.weight[:, :3], conv.weight)
+    assert torch.allclose(wide.weight[:, 3], conv.weight.mean(dim=1))
+    assert torch.count_nonzero(wide.weight[:, 4]) == 0
+    assert torch.equal(wide.bias, conv.bias)
+
+
+def test_find_first_conv_resnet():
+    net = torchvision.models.resnet18(weights=None)
+    parent, attr, conv = find_first_conv(net)
+    assert parent is net and attr == "conv1" and conv is net.conv1
+    with pytest.raises(ValueError):
+        find_first_conv(nn.Sequential(nn.Linear(2, 2)))
+
+
+@pytest.mark.parametrize("validity", [False, True])
+def test_zero_prior_equivalence_resnet18(validity):
+    torch.manual_seed(0)
+    ref = torchvision.models.resnet18(weights=None).eval()
+    wide = widen_first_conv(copy.deepcopy(ref), validity=validity).eval()
+    x = torch.randn(2, 3, 64, 96)
+    extra = torch.zeros(2, 1 + int(validity), 64, 96)
+    with torch.no_grad():
+        diff = (wide(torch.cat([x, extra], 1)) - ref(x)).abs().max().item()
+    assert diff <= 1e-6
+    # a non-zero prior must change the output (the channel is wired in)
+    with torch.no_grad():
+        moved = (wide(torch.cat([x, extra + 0.5], 1)) - ref(x)).abs().max().item()
+    assert moved > 1e-3
+
+
+def test_prior_channel_stem_zero_prior():
+    torch.manual_seed(0)
+    conv = nn.Conv2d(3, 8, 7, stride=2, padding=3, bias=False)
+    stem = PriorChannelStem(conv, max_depth=80.0, with_validity=True)
+    rgb = torch.randn(3, 3, 32, 32)
+    prior = torch.zeros(3, 1, 32, 32)
+    assert torch.allclose(stem(rgb, prior), conv(rgb), atol=1e-6)
