@@ -22,7 +22,7 @@ _EPS = 1e-12
 
 
 def _param(value: np.ndarray, like: Tensor) -> Tensor:
-    return torch.as_tensor(value, dtype=like.dtype, device=like.device)
+    return torch.as_tensor(np.ascontiguousarray(value), dtype=like.dtype, device=like.device)
 
 
 def _polyval(coeffs: Tensor, x: Tensor) -> Tensor:
@@ -38,6 +38,11 @@ def _polyder(coeffs: Tensor) -> Tensor:
     if n == 1:
         return torch.zeros_like(coeffs)
     return coeffs[1:] * torch.arange(1, n, dtype=coeffs.dtype, device=coeffs.device)
+
+
+def _tol(t: Tensor) -> float:
+    """Residual below which an iterative solve counts as converged, by dtype."""
+    return 1e3 * torch.finfo(t.dtype).eps
 
 
 def _safe_norm2(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
@@ -215,7 +220,7 @@ class Pinhole(CameraModel):
                 x = x - (e * rx - b * ry) / det
                 y = y - (-c * rx + a * ry) / det
             fx, fy = self._distort(x, y, d)
-            converged = ((fx - xd).abs() < 1e-9) & ((fy - yd).abs() < 1e-9)
+            converged = ((fx - xd).abs() < _tol(x)) & ((fy - yd).abs() < _tol(x))
         else:
             converged = torch.ones_like(x, dtype=torch.bool)
         rays = torch.stack([x, y, torch.ones_like(x)], dim=-1)
@@ -281,7 +286,7 @@ class KannalaBrandt(CameraModel):
             f = self._theta_d(theta, k) - theta_d
             df = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
             theta = (theta - f / torch.where(df.abs() < 1e-12, torch.ones_like(df), df)).clamp(0, math.pi)
-        converged = (self._theta_d(theta, k) - theta_d).abs() < 1e-9
+        converged = (self._theta_d(theta, k) - theta_d).abs() < _tol(theta)
         s = torch.where(on_axis, torch.ones_like(theta), torch.sin(theta) / torch.where(on_axis, 1, theta_d))
         rays = torch.stack([xd * s, yd * s, torch.cos(theta)], dim=-1)
         valid = converged & (theta <= math.radians(self.fov_deg) / 2 + 1e-9) & self.in_image(uv)
@@ -344,7 +349,7 @@ class Ocam(CameraModel):
         col = e * xs + ys + col_c
         uv = torch.stack([col, row], dim=-1)
         angle = torch.atan2(norm, points[..., 2])
-        converged = (_polyval(poly, rho) * n - z * rho).abs() < 1e-6 * (1 + rho)
+        converged = (_polyval(poly, rho) * n - z * rho).abs() < _tol(rho) * (1 + rho)
         valid = converged & (angle <= math.radians(self.fov_deg) / 2 + 1e-9) & (full > 1e-9) & self.in_image(uv)
         return uv, valid
 
