@@ -1,19 +1,100 @@
-"""`sgde bench`: not implemented yet (see the open issue)."""
+"""`sgde bench [NAME ...] [--json OUT] [--fast]`: run the benchmark suite and describe the machine."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
+import os
+import platform
 import sys
+import time
 
-HELP = "(not implemented yet)"
+HELP = "run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export) and write one JSON"
+
+# name on the command line -> module in sgde_plugin.benchmarks; the fast set is what `make bench` runs
+BENCHMARKS = {
+    "synth": "synth",
+    "readers": "readers",
+    "prior": "prior",
+    "calibrate": "calibrate",
+    "stem": "stem",
+    "train-effect": "train_effect",
+    "cache": "cache",
+    "export": "export",
+}
+SLOW = {"train-effect"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No arguments until the command exists."""
-    parser.add_argument("rest", nargs=argparse.REMAINDER)
+    """Arguments of `sgde bench`."""
+    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(BENCHMARKS)}")
+    parser.add_argument("--json", dest="json_out", help="write all results to this JSON file")
+    parser.add_argument("--fast", action="store_true", help="smaller sizes, and skip the slow benchmarks unless named")
+
+
+def machine_description() -> dict:
+    """CPU, cores, memory and library versions of this machine, for the benchmark record."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    mem_gib = None
+    try:
+        mem_gib = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    except (ValueError, OSError, AttributeError):
+        pass
+    import numpy
+    import torch
+
+    from .. import __version__
+
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_gib": mem_gib,
+        "gpu": torch.cuda.is_available(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": numpy.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "sgde_plugin": __version__,
+        "platform": platform.platform(),
+    }
 
 
 def run(args: argparse.Namespace) -> int:
-    """Say the command does not exist yet and fail."""
-    print("sgde bench: not implemented yet", file=sys.stderr)
-    return 1
+    """Run the named (or all) benchmarks, print each result, optionally write the JSON."""
+    from ..errors import InputError
+    from ..io import atomic_write_text
+
+    names = args.names or [n for n in BENCHMARKS if not (args.fast and n in SLOW)]
+    for n in names:
+        if n not in BENCHMARKS:
+            raise InputError(None, "NAME", f"unknown benchmark {n!r} (choose from {', '.join(BENCHMARKS)})")
+    record: dict = {"machine": machine_description(), "fast": bool(args.fast), "results": {}}
+    failed = 0
+    for n in names:
+        start = time.perf_counter()
+        print(f"== {n}", flush=True)
+        try:
+            module = importlib.import_module(f"sgde_plugin.benchmarks.{BENCHMARKS[n]}")
+            result = module.run(fast=args.fast)
+        except ModuleNotFoundError as exc:
+            result = {"error": f"not available: {exc}"}
+            failed += 1
+        except Exception as exc:  # noqa: BLE001 - one failing benchmark must not hide the others
+            result = {"error": f"{type(exc).__name__}: {exc}"}
+            failed += 1
+        result["wall_s"] = round(time.perf_counter() - start, 2)
+        record["results"][n] = result
+        print(json.dumps(result, indent=1, default=str), flush=True)
+    if args.json_out:
+        atomic_write_text(args.json_out, json.dumps(record, indent=1, default=str) + "\n")
+        print(f"wrote {args.json_out}", file=sys.stderr)
+    return 1 if failed else 0
