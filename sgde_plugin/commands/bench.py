@@ -28,7 +28,8 @@ SLOW = {"train-effect"}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `sgde bench`."""
-    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {', '.join(BENCHMARKS)}")
+    names = ", ".join(BENCHMARKS)
+    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {names}")
     parser.add_argument("--json", dest="json_out", help="write all results to this JSON file")
     parser.add_argument("--fast", action="store_true", help="smaller sizes, and skip the slow benchmarks unless named")
 
