@@ -1,1 +1,51 @@
-"""Adapters of the SGDE depth prior to BEVDepth-style and VoxFormer-style pipelines."""
+"""Adapters of the SGDE depth prior to BEVDepth-style and VoxFormer-style pipelines.
+
+Names are loaded on first use, so ``import sgde_plugin.adapters`` is cheap; see ``registry`` for
+the optional mmdet3d registration.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "PriorDepthNet": "bevdepth",
+    "PriorInjector": "bevdepth",
+    "DepthToVoxelProposals": "voxformer",
+    "VoxelGrid": "voxformer",
+    "VOXFORMER_GRID": "voxformer",
+    "OCC3D_NUSCENES_GRID": "voxformer",
+    "GRID_PRESETS": "voxformer",
+    "fuse_depth_with_prior": "voxformer",
+    "proposal_depth_loss": "voxformer",
+    "proposal_indices": "voxformer",
+    "PriorFeatureEncoder": "prior_features",
+    "min_pool_nonzero": "prior_features",
+    "camera_params": "camera_aware",
+    "depth_bin_labels": "depth_bins",
+    "depth_bce_loss": "depth_bins",
+    "register_mmdet3d": "registry",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(list(globals()) + __all__)
+
+
+def _register_if_mmdet3d_loaded() -> None:
+    import sys
+
+    if "mmdet3d" in sys.modules and "mmengine" in sys.modules:
+        importlib.import_module(f"{__name__}.registry").register_if_loaded()
+
+
+_register_if_mmdet3d_loaded()

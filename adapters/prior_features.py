@@ -1,0 +1,73 @@
+"""The SGDE prior brought to a feature map: zero-aware min pooling, normalisation and a small encoder."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from sgde_plugin.nn import PriorEncoding
+
+# Stand-in for "no value" while min pooling; finite and below the float16 maximum (65504) so the
+# same graph works in half precision. Any real prior is far closer than this.
+_FAR = 1.0e4
+
+
+def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
+    """Minimum non-zero value per stride x stride patch of ``depth`` [..., H, W]; empty patches stay 0.
+
+    This is BEVDepth's ground-truth downsampling (nearest surface per patch), except that a patch
+    without any value is 0 ("none") instead of a fill value. H and W must be multiples of stride.
+    """
+    if stride == 1:
+        return depth
+    *lead, h, w = depth.shape
+    if h % stride or w % stride:
+        raise ValueError(f"depth size {h}x{w} is not a multiple of the stride {stride}")
+    flat = depth.reshape(-1, 1, h, w)
+    far = torch.where(flat > 0, flat, torch.full_like(flat, _FAR))
+    pooled = -F.max_pool2d(-far, kernel_size=stride, stride=stride)
+    pooled = torch.where(pooled >= _FAR, torch.zeros_like(pooled), pooled)
+    return pooled.reshape(*lead, h // stride, w // stride)
+
+
+class PriorFeatureEncoder(nn.Module):
+    """Metric prior at image size -> features at the feature stride, to be added to a feature map.
+
+    Steps: min-pool ignoring zeros to the feature stride, ``PriorEncoding`` (depth / max_depth in
+    [0, 1], 0 = none, plus a validity channel), then two 1x1 convolutions. With ``zero_init`` the
+    last convolution starts at zero, so adding the output changes nothing until training moves it.
+    """
+
+    def __init__(
+        self,
+        out_channels: int,
+        downsample: int = 16,
+        max_depth: float = 58.0,
+        hidden_channels: int = 64,
+        with_validity: bool = True,
+        zero_init: bool = False,
+    ) -> None:
+        super().__init__()
+        self.downsample = int(downsample)
+        self.encoding = PriorEncoding(max_depth=max_depth, with_validity=with_validity)
+        self.net = nn.Sequential(
+            nn.Conv2d(self.encoding.out_channels, hidden_channels, kernel_size=1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(hidden_channels, out_channels, kernel_size=1),
+        )
+        if zero_init:
+            nn.init.zeros_(self.net[-1].weight)
+            nn.init.zeros_(self.net[-1].bias)
+
+    def pooled(self, prior: Tensor) -> Tensor:
+        """Prior [B, N, H, W] or [B*N, 1, H, W] metres -> [B*N, 1, H/s, W/s] metres (0 = none)."""
+        if prior.dim() == 4 and prior.shape[1] != 1:
+            prior = prior.flatten(0, 1).unsqueeze(1)
+        elif prior.dim() != 4:
+            raise ValueError(f"prior must be [B, N, H, W] or [B*N, 1, H, W], got {list(prior.shape)}")
+        return min_pool_nonzero(prior, self.downsample)
+
+    def forward(self, prior: Tensor) -> Tensor:
+        """Prior [B, N, H, W] (or [B*N, 1, H, W]) in metres -> features [B*N, out, H/s, W/s]."""
+        return self.net(self.encoding(self.pooled(prior)))

@@ -1,0 +1,65 @@
+"""mmdet3d registration of the adapter modules (only when mmengine and mmdet3d are importable).
+
+Importing this module registers the adapters in ``mmdet3d.registry.MODELS`` if mmdet3d can be
+imported, so a config can say ``custom_imports = dict(imports=["sgde_plugin.adapters.registry"])``.
+Importing ``sgde_plugin.adapters`` itself never imports mmdet3d: it registers only when mmdet3d is
+already loaded. Without mmdet3d nothing happens and nothing fails.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from typing import Any
+
+REGISTERED_NAMES = {
+    "SGDEPriorDepthNet": ("sgde_plugin.adapters.bevdepth", "PriorDepthNet"),
+    "SGDEPriorInjector": ("sgde_plugin.adapters.bevdepth", "PriorInjector"),
+    "SGDEDepthToVoxelProposals": ("sgde_plugin.adapters.voxformer", "DepthToVoxelProposals"),
+}
+
+
+def mmdet3d_available() -> bool:
+    """True when both mmengine and mmdet3d can be imported (without importing them)."""
+    for name in ("mmengine", "mmdet3d"):
+        if name in sys.modules:
+            continue
+        try:
+            if importlib.util.find_spec(name) is None:
+                return False
+        except (ImportError, ValueError):
+            return False
+    return True
+
+
+def _models_registry() -> Any | None:
+    try:
+        return importlib.import_module("mmdet3d.registry").MODELS
+    except (ImportError, AttributeError):
+        return None
+
+
+def register_mmdet3d() -> list[str]:
+    """Register the adapters in mmdet3d's MODELS registry; returns the names registered (empty without mmdet3d)."""
+    if not mmdet3d_available():
+        return []
+    registry = _models_registry()
+    if registry is None:
+        return []
+    names = []
+    for name, (module, attr) in REGISTERED_NAMES.items():
+        cls = getattr(importlib.import_module(module), attr)
+        registry.register_module(name=name, module=cls, force=True)
+        names.append(name)
+    return names
+
+
+def register_if_loaded() -> list[str]:
+    """Register only if mmdet3d is already imported (costs nothing otherwise); returns the names."""
+    if "mmdet3d" not in sys.modules or "mmengine" not in sys.modules:
+        return []
+    return register_mmdet3d()
+
+
+register_mmdet3d()
