@@ -3,6 +3,7 @@ channel, monodepth2-style decoder, multi-scale metric depth outputs."""
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import torch
@@ -63,11 +64,11 @@ class ResNet18Encoder(nn.Module):
 
 
 class ConvBlock(nn.Module):
-    """3x3 convolution (reflection padded) followed by ELU, as in monodepth2."""
+    """3x3 convolution followed by ELU as in monodepth2 (replicate padding: works on 1-pixel maps)."""
 
     def __init__(self, in_channels: int, out_channels: int) -> None:
         super().__init__()
-        self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="reflect")
+        self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1, padding_mode="replicate")
         self.act = nn.ELU(inplace=True)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -90,7 +91,7 @@ class DepthDecoder(nn.Module):
             c_skip = encoder_channels[i - 1] if i > 0 else 0
             self.up1.append(ConvBlock(DECODER_CHANNELS[i] + c_skip, DECODER_CHANNELS[i]))
         self.heads = nn.ModuleDict({
-            str(s): nn.Conv2d(DECODER_CHANNELS[s], 1, 3, padding=1, padding_mode="reflect") for s in self.scales
+            str(s): nn.Conv2d(DECODER_CHANNELS[s], 1, 3, padding=1, padding_mode="replicate") for s in self.scales
         })
 
     def forward(self, features: list[Tensor], out_size: tuple[int, int]) -> dict[int, Tensor]:
@@ -168,6 +169,21 @@ class DepthNet(nn.Module):
             out[("disp", s)] = v
             out[("depth", s)] = sigmoid_to_depth(v, self.min_depth, self.max_depth)
         return out
+
+    @classmethod
+    def with_prior_from(cls, baseline: DepthNet, validity: bool = False,
+                        prior_max_depth: float | None = None) -> DepthNet:
+        """A prior-input copy of a (trained) 3-channel ``baseline``: same weights, widened first conv.
+
+        With an all-zero prior it computes exactly what the baseline computes.
+        """
+        if baseline.use_prior:
+            raise ValueError("baseline already takes a prior")
+        net = copy.deepcopy(baseline)
+        net.use_prior = True
+        net.encoding = PriorEncoding(prior_max_depth or baseline.max_depth, with_validity=validity)
+        net.encoder.conv1 = widen_first_conv(net.encoder.conv1, 1, validity)
+        return net
 
     def predict(self, rgb: Tensor, prior: Tensor | None = None, valid: Tensor | None = None) -> Tensor:
         """Full-resolution metric depth only (a single tensor, convenient for export)."""

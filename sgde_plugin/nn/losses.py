@@ -177,7 +177,7 @@ class PriorRankingLoss(nn.Module):
     the gradient direction at 2..30 px, pairs A-B, B-C, C-D) plus random pairs of valid pixels. The
     ordinal label of a pair is +1 / -1 when the prior depth ratio exceeds 1 + ``sigma`` either way,
     else 0. The loss on the log predicted depth is log(1 + exp(-l (p_a - p_b))) for ordered pairs
-    and (p_a - p_b)^2 for equal pairs, averaged over pairs with both pixels valid.
+    and (p_a - p_b)^2 for equal pairs, averaged over pairs of two distinct valid pixels.
     """
 
     def __init__(
@@ -207,16 +207,19 @@ class PriorRankingLoss(nn.Module):
         n_edge_anchor = int(self.num_pairs * self.edge_fraction) // 3
         n_rand = self.num_pairs - 3 * n_edge_anchor
 
-        rand = torch.multinomial(torch.where(has[:, None], flat, torch.ones_like(flat)), 2 * n_rand,
-                                 replacement=True, generator=g).reshape(b, n_rand, 2)
+        if n_rand > 0:
+            rand = torch.multinomial(torch.where(has[:, None], flat, torch.ones_like(flat)), 2 * n_rand,
+                                     replacement=True, generator=g).reshape(b, n_rand, 2)
+        else:
+            rand = torch.zeros(b, 0, 2, dtype=torch.long)
         rand_ok = has[:, None].expand(b, n_rand)
         if n_edge_anchor == 0:
-            return rand, rand_ok
+            return rand, rand_ok & (rand[..., 0] != rand[..., 1])
 
-        logp = torch.log(prior.clamp_min(1e-6)) * mask
+        logp = F.pad(torch.log(prior.clamp_min(1e-6)) * mask, (1, 1, 1, 1), mode="replicate")
         kx = torch.tensor(_SOBEL_X, dtype=torch.float64).reshape(1, 1, 3, 3)
-        gx = F.conv2d(logp, kx, padding=1)
-        gy = F.conv2d(logp, kx.transpose(2, 3), padding=1)
+        gx = F.conv2d(logp, kx)
+        gy = F.conv2d(logp, kx.transpose(2, 3))
         # an edge only counts where its whole 3x3 neighbourhood has a prior (not the overlap's border)
         full = -F.max_pool2d(-mask.to(torch.float64), 3, stride=1, padding=1) > 0.5
         mag = torch.sqrt(gx * gx + gy * gy) * full
@@ -238,7 +241,8 @@ class PriorRankingLoss(nn.Module):
         pts_ok = pts_ok & has_edge[:, None, None]
         edge_pairs = torch.stack([pts[..., :3], pts[..., 1:]], -1).reshape(b, -1, 2)
         edge_ok = (pts_ok[..., :3] & pts_ok[..., 1:]).reshape(b, -1)
-        return torch.cat([edge_pairs, rand], 1), torch.cat([edge_ok, rand_ok], 1)
+        pairs, ok = torch.cat([edge_pairs, rand], 1), torch.cat([edge_ok, rand_ok], 1)
+        return pairs, ok & (pairs[..., 0] != pairs[..., 1])
 
     def forward(
         self, pred: Tensor, prior: Tensor, valid: Tensor | None = None,
