@@ -1,19 +1,66 @@
-"""`sgde export`: not implemented yet (see the open issue)."""
+"""`sgde export onnx`: write the R18 depth net or the BEVDepth-style depth branch as one checked ONNX file."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-HELP = "(not implemented yet)"
+HELP = "export the R18 depth net or the BEVDepth-style depth branch to ONNX (optionally checked)"
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW, e.g. 384x640, got {text!r}") from None
+    if h <= 0 or w <= 0:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    return h, w
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No arguments until the command exists."""
-    parser.add_argument("rest", nargs=argparse.REMAINDER)
+    """Arguments of `sgde export`."""
+    parser.add_argument("format", choices=["onnx"], help="output format")
+    parser.add_argument("--model", required=True, choices=["r18", "bevdepth"], help="which network")
+    parser.add_argument("--out", required=True, metavar="FILE.onnx", help="output file")
+    parser.add_argument("--checkpoint", metavar="CKPT", help="weights (torch.load weights_only=True); default: "
+                        "untrained weights")
+    parser.add_argument("--check", action="store_true", help="compare onnxruntime with torch (batch 1 and 6, "
+                        "random and generated inputs) before writing; a mismatch fails with the numbers")
+    parser.add_argument("--fp16", action="store_true", help="float16 weights and arithmetic, float32 inputs/outputs")
+    parser.add_argument("--image-size", type=_size, metavar="HxW", help="image size (r18 default 384x640, "
+                        "bevdepth default 256x704 -> features at stride 16)")
+    parser.add_argument("--cams", type=int, default=6, help="cameras per sample for bevdepth example inputs")
+    parser.add_argument("--opset", type=int, default=17, help="ONNX opset (>= 17)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Say the command does not exist yet and fail."""
-    print("sgde export: not implemented yet", file=sys.stderr)
-    return 1
+    """Build the model, export it, check it when asked, print a summary."""
+    from ..errors import InputError
+    from ..export.models import BUILDERS
+    from ..export.parity import ParityError
+    from ..export.workflow import export_spec
+
+    if args.opset < 17:
+        raise InputError(None, "--opset", f"must be >= 17, got {args.opset}")
+    if args.cams < 1:
+        raise InputError(None, "--cams", f"must be >= 1, got {args.cams}")
+    kwargs = {} if args.image_size is None else {"image_size": args.image_size}
+    if args.model == "bevdepth":
+        kwargs["cams"] = args.cams
+    spec = BUILDERS[args.model](args.checkpoint, **kwargs)
+    try:
+        report = export_spec(spec, args.out, check=args.check, fp16=args.fp16, opset=args.opset)
+    except ParityError as exc:
+        print(f"sgde export: refused, nothing written to {args.out}: {exc}", file=sys.stderr)
+        return 1
+    precision = "fp16" if args.fp16 else "fp32"
+    print(f"wrote {report['path']} ({report['bytes'] / 2**20:.1f} MiB, {precision}, opset {args.opset})")
+    print(f"  inputs:  {', '.join(spec.input_names)}")
+    print(f"  outputs: {', '.join(spec.output_names)}")
+    for result in report["parity"]:
+        print("  " + result.line())
+    if args.check:
+        print(f"  check passed ({len(report['parity'])} comparisons, tolerance atol "
+              f"{report['tolerance']['atol_fraction_of_range']:g} x range + rtol {report['tolerance']['rtol']:g})")
+    return 0

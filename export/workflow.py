@@ -1,0 +1,86 @@
+"""Export one model spec to ONNX and, optionally, prove it against torch before the file appears."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from torch import Tensor
+
+from sgde_plugin.io import atomic_path
+
+from .models import ExportSpec
+from .onnx import DEFAULT_OPSET, export_onnx
+from .parity import FP16_TOLERANCE, FP32_TOLERANCE, ParityResult, check_parity
+
+TRACE_BATCH = 2  # batch of the example inputs; checks run at 1 and 6 to prove the batch axis is dynamic
+CHECK_BATCHES = (1, 6)
+
+
+def parity_cases(spec: ExportSpec, batches: tuple[int, ...] = CHECK_BATCHES) -> list[tuple[str, int, list[Tensor]]]:
+    """Seeded random inputs and a generated frame at each batch size (plus another image size for r18)."""
+    cases: list[tuple[str, int, list[Tensor]]] = []
+    for i, b in enumerate(batches):
+        cases.append(("random", b, list(spec.random_inputs(b, 1000 + i))))
+        cases.append(("generated", b, list(spec.synthetic_inputs(b))))
+    if spec.name == "r18":
+        h, w = spec.extra["image_size"]
+        g_inputs = _resized_random(spec, 2, (h + 64, max(64, w - 128)))
+        cases.append((f"random {h + 64}x{max(64, w - 128)}", 2, g_inputs))
+    return cases
+
+
+def _resized_random(spec: ExportSpec, batch: int, size: tuple[int, int]) -> list[Tensor]:
+    import torch
+
+    g = torch.Generator().manual_seed(7)
+    h, w = size
+    image = torch.rand(batch, 3, h, w, generator=g)
+    prior = torch.where(torch.rand(batch, 1, h, w, generator=g) < 0.3,
+                        1.0 + 60.0 * torch.rand(batch, 1, h, w, generator=g), torch.zeros(batch, 1, h, w))
+    return [image, prior]
+
+
+def _chmod_like_new_file(path: Path) -> None:
+    """Give the file the mode a plain open() would (temporary files are created 0600)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
+def export_spec(
+    spec: ExportSpec,
+    out: str | Path,
+    *,
+    check: bool = False,
+    fp16: bool = False,
+    opset: int = DEFAULT_OPSET,
+    batches: tuple[int, ...] = CHECK_BATCHES,
+) -> dict[str, Any]:
+    """Export ``spec`` to ``out``; with ``check`` run the parity cases first and keep no file on failure.
+
+    Returns a report: path, size, names, timings and (with ``check``) every parity result.
+    """
+    out = Path(out)
+    report: dict[str, Any] = {"model": spec.name, "path": str(out), "fp16": fp16, "opset": opset,
+                              "inputs": list(spec.input_names), "outputs": list(spec.output_names)}
+    results: list[ParityResult] = []
+    with atomic_path(out) as tmp:
+        t0 = time.perf_counter()
+        export_onnx(spec.module, spec.random_inputs(TRACE_BATCH, 0), tmp, input_names=spec.input_names,
+                    output_names=spec.output_names, dynamic_axes=spec.dynamic_axes, metadata=spec.metadata,
+                    opset=opset, fp16=fp16)
+        report["export_seconds"] = round(time.perf_counter() - t0, 2)
+        if check:
+            t0 = time.perf_counter()
+            tolerance = FP16_TOLERANCE if fp16 else FP32_TOLERANCE
+            results = check_parity(tmp, spec.module, parity_cases(spec, batches), spec.input_names,
+                                   spec.output_names, tolerance)
+            report["check_seconds"] = round(time.perf_counter() - t0, 2)
+            report["tolerance"] = {"atol_fraction_of_range": tolerance[0], "rtol": tolerance[1]}
+        report["bytes"] = tmp.stat().st_size
+        _chmod_like_new_file(tmp)
+    report["parity"] = results
+    return report
