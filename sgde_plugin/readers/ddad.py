@@ -1,0 +1,250 @@
+"""DDAD in the DGP layout -> one `Rig` per scene folder.
+
+Schema (TRI-ML/dgp, `dgp/proto/{scene,sample,image,geometry,identifiers}.proto`, written as JSON by
+`dgp.utils.protobuf.save_pbobject_as_json` with the proto field names):
+
+- `<scene>/scene_<sha1>.json`: a `Scene` with `samples` (each: `id` {log, name, timestamp, index},
+  `datum_keys`, `calibration_key`) and `data` (each `Datum`: `id` {name e.g. "CAMERA_01", timestamp},
+  `key`, `datum` {`image` {filename, height, width, channels, pose}}). Timestamps are protobuf JSON
+  Timestamps (RFC 3339 strings). `image.pose` is the camera's pose in the scene's world frame at the
+  image time (DGP's `pose_WC`; an all-zero quaternion means identity).
+- `<scene>/calibration/<calibration_key>.json`: a `SampleCalibration` with parallel lists `names`,
+  `intrinsics` (`CameraIntrinsics`: fx, fy, cx, cy, skew, and k1..k6, p1, p2, fisheye, ...) and
+  `extrinsics` (`Pose`: `translation` {x, y, z}, `rotation` {qx, qy, qz, qw}), the sensor's pose in the
+  vehicle frame (DGP's `pose_VS`).
+- Images `rgb/CAMERA_xx/<timestamp>.png` (the path comes from `image.filename`).
+
+Vehicle frame x forward, y left, z up and camera frame x right, y down, z forward, as ours. DGP's
+JSON parser also accepts lowerCamelCase names (`datumKeys`), so we do too. Frame ids are the sample's
+position in the scene ("000000"...); a frame's timestamp and ego pose come from CAMERA_01
+(ego_to_world = pose_WC(CAMERA_01) @ inverse(pose_VC(CAMERA_01))). DDAD images are undistorted;
+non-zero k1, k2, p1, p2, k3 become an OpenCV `dist`, a fisheye calibration is refused.
+"""
+
+from __future__ import annotations
+
+import calendar
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import Camera, intrinsics_from_dict
+from ..errors import InputError
+from ..geometry import invert_transform, make_transform, quaternion_to_rotation
+from ..io import image_size
+from ..rig import Frame, Rig, ring_pairs
+from .jsonio import get, read_json
+
+RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
+REFERENCE = "CAMERA_01"
+QUATERNION_TOL = 1e-3
+
+_RFC3339 = re.compile(
+    r"^(\d{4})-(\d{2})-(\d{2})[Tt ](\d{2}):(\d{2}):(\d{2})(?:\.(\d{1,9}))?([Zz]|[+-]\d{2}:\d{2})$"
+)
+
+
+def scene_files(folder: Path) -> list[Path]:
+    """`scene_*.json` files directly in a folder, sorted."""
+    return sorted(folder.glob("scene_*.json")) if folder.is_dir() else []
+
+
+def is_scene_folder(folder: Path) -> bool:
+    """True if `folder` holds a DGP scene JSON."""
+    return bool(scene_files(folder))
+
+
+def scene_folders(root: Path) -> list[Path]:
+    """Scene folders directly under a DDAD root (sorted by name)."""
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.iterdir() if p.is_dir() and is_scene_folder(p))
+
+
+def parse_timestamp_us(value: object, file: Path, key: str) -> int:
+    """Microseconds since the epoch of a protobuf JSON Timestamp (RFC 3339, Z or offset)."""
+    m = _RFC3339.match(value) if isinstance(value, str) else None
+    if m is None:
+        raise InputError(file, key, f"not an RFC 3339 timestamp ({value!r})")
+    y, mo, d, h, mi, s = (int(g) for g in m.groups()[:6])
+    frac, zone = m.group(7) or "", m.group(8)
+    seconds = calendar.timegm((y, mo, d, h, mi, s, 0, 0, 0))
+    if zone not in ("Z", "z"):
+        sign = 1 if zone[0] == "+" else -1
+        seconds -= sign * (int(zone[1:3]) * 3600 + int(zone[4:6]) * 60)
+    return seconds * 1_000_000 + int((frac + "000000")[:6])
+
+
+def _field(row: dict, name: str, file: Path, where: str, kinds=None, default=...):
+    camel = re.sub(r"_([a-z])", lambda m: m.group(1).upper(), name)
+    return get(row, name, file, where, kinds, alt=camel if camel != name else None, default=default)
+
+
+def _num(row: dict, name: str, file: Path, where: str, default: float | None = 0.0) -> float:
+    value = _field(row, name, file, where, (int, float), default=... if default is None else default)
+    if not np.isfinite(value):
+        raise InputError(file, f"{where}.{name}", "not finite")
+    return float(value)
+
+
+def _pose(row: object, file: Path, where: str, zero_is_identity: bool = False) -> np.ndarray:
+    """4x4 transform of a DGP `Pose` (translation {x, y, z}, rotation {qx, qy, qz, qw})."""
+    if not isinstance(row, dict):
+        raise InputError(file, where, "not a pose object")
+    t = _field(row, "translation", file, where, dict, default={})
+    r = _field(row, "rotation", file, where, dict, default={})
+    trans = [_num(t, k, file, f"{where}.translation") for k in ("x", "y", "z")]
+    q = np.array([_num(r, k, file, f"{where}.rotation") for k in ("qw", "qx", "qy", "qz")])
+    norm = float(np.linalg.norm(q))
+    if norm == 0.0 and zero_is_identity:
+        q = np.array([1.0, 0.0, 0.0, 0.0])
+    elif abs(norm - 1.0) > QUATERNION_TOL:
+        raise InputError(file, f"{where}.rotation", f"quaternion is not unit length (norm {norm:.6g})")
+    return make_transform(quaternion_to_rotation(q), trans)
+
+
+def _intrinsics(row: object, width: int, height: int, file: Path, where: str):
+    if not isinstance(row, dict):
+        raise InputError(file, where, "not an intrinsics object")
+    fx, fy, cx, cy = (_num(row, k, file, where, default=None) for k in ("fx", "fy", "cx", "cy"))
+    skew = _num(row, "skew", file, where)
+    if _num(row, "fisheye", file, where) != 0:
+        raise InputError(file, f"{where}.fisheye", "fisheye DGP calibrations are not supported")
+    for k in ("k4", "k5", "k6"):
+        if _num(row, k, file, where) != 0:
+            raise InputError(file, f"{where}.{k}", "rational distortion (k4..k6) is not supported")
+    dist = [_num(row, k, file, where) for k in ("k1", "k2", "p1", "p2", "k3")]
+    entry = {"model": "pinhole", "width": width, "height": height,
+             "K": [[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], "dist": dist if any(dist) else None}
+    try:
+        return intrinsics_from_dict(entry, where)
+    except InputError as exc:
+        raise InputError(file, exc.key, exc.problem) from None
+
+
+def _scene_file(folder: Path) -> Path:
+    """The scene JSON of a folder; with several, the newest `creation_date` (as DGP does)."""
+    files = scene_files(folder)
+    if not files:
+        raise InputError(folder, None, "no scene_*.json (not a DDAD / DGP scene folder)")
+    if len(files) == 1:
+        return files[0]
+    dated = []
+    for f in files:
+        doc = read_json(f)
+        date = doc.get("creation_date", doc.get("creationDate", "")) if isinstance(doc, dict) else ""
+        dated.append((parse_timestamp_us(date, f, "creation_date") if date else -1, f.name, f))
+    return max(dated)[2]
+
+
+def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
+    """One DDAD scene (a folder with scene_<sha1>.json, or that file) as a Rig."""
+    path = Path(path)
+    scene_path = path if path.is_file() else _scene_file(path)
+    folder = scene_path.parent
+    doc = read_json(scene_path)
+    if not isinstance(doc, dict):
+        raise InputError(scene_path, None, "top level is not a JSON object")
+    samples = _field(doc, "samples", scene_path, "scene", list)
+    data = _field(doc, "data", scene_path, "scene", list)
+    if not samples:
+        raise InputError(scene_path, "samples", "empty")
+
+    datums: dict[str, dict] = {}
+    for i, d in enumerate(data):
+        if not isinstance(d, dict):
+            raise InputError(scene_path, f"data[{i}]", "not an object")
+        datums[_field(d, "key", scene_path, f"data[{i}]", str)] = d
+
+    calib_keys = set()
+    frames_datums: list[dict[str, tuple[str, dict]]] = []
+    for i, s in enumerate(samples):
+        where = f"samples[{i}]"
+        if not isinstance(s, dict):
+            raise InputError(scene_path, where, "not an object")
+        calib_keys.add(_field(s, "calibration_key", scene_path, where, str))
+        by_name: dict[str, tuple[str, dict]] = {}
+        for key in _field(s, "datum_keys", scene_path, where, list):
+            d = datums.get(key)
+            if d is None:
+                raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not in data")
+            name = _field(_field(d, "id", scene_path, f"data[key={key}]", dict), "name", scene_path,
+                          f"data[key={key}].id", str).upper()
+            if name in RING:
+                by_name[name] = (key, d)
+        for cam in RING:
+            if cam not in by_name:
+                raise InputError(scene_path, where, f"camera {cam} is missing")
+        frames_datums.append(by_name)
+    if len(calib_keys) != 1:
+        raise InputError(scene_path, "samples[].calibration_key", f"{len(calib_keys)} calibrations (expected 1)")
+
+    calib_path = folder / "calibration" / f"{calib_keys.pop()}.json"
+    calib = read_json(calib_path)
+    if not isinstance(calib, dict):
+        raise InputError(calib_path, None, "top level is not a JSON object")
+    names = _field(calib, "names", calib_path, "calibration", list)
+    intr = _field(calib, "intrinsics", calib_path, "calibration", list)
+    extr = _field(calib, "extrinsics", calib_path, "calibration", list)
+    if not (len(names) == len(intr) == len(extr)):
+        raise InputError(calib_path, "names/intrinsics/extrinsics", "lists have different lengths")
+    index = {str(n).upper(): i for i, n in enumerate(names)}
+
+    cameras = []
+    first = frames_datums[0]
+    for cam in RING:
+        if cam not in index:
+            raise InputError(calib_path, "names", f"camera {cam} is missing")
+        i = index[cam]
+        key, d = first[cam]
+        image = _image(d, scene_path, key)
+        w = _field(image, "width", scene_path, f"data[key={key}].datum.image", int)
+        h = _field(image, "height", scene_path, f"data[key={key}].datum.image", int)
+        K = _intrinsics(intr[i], w, h, calib_path, f"intrinsics[{i}]")
+        cameras.append(Camera(cam, K, _pose(extr[i], calib_path, f"extrinsics[{i}]")))
+    ego_from_ref = invert_transform(cameras[0].sensor_to_ego)
+
+    frames = []
+    for n, by_name in enumerate(frames_datums):
+        images = {}
+        for cam in cameras:
+            key, d = by_name[cam.name]
+            image = _image(d, scene_path, key)
+            where = f"data[key={key}].datum.image"
+            filename = _field(image, "filename", scene_path, where, str)
+            images[cam.name] = folder / filename
+            if check_images:
+                size = (_field(image, "width", scene_path, where, int), _field(image, "height", scene_path, where, int))
+                if size != (cam.width, cam.height):
+                    raise InputError(scene_path, where, f"size {size[0]}x{size[1]} differs from the scene's first "
+                                     f"sample ({cam.width}x{cam.height})")
+                _check_image(images[cam.name], cam, scene_path, f"{where}.filename")
+        key, d = by_name[REFERENCE]
+        ident = _field(d, "id", scene_path, f"data[key={key}]", dict)
+        ts = parse_timestamp_us(_field(ident, "timestamp", scene_path, f"data[key={key}].id"), scene_path,
+                                f"data[key={key}].id.timestamp")
+        image = _image(d, scene_path, key)
+        raw_pose = _field(image, "pose", scene_path, f"data[key={key}].datum.image", dict, default=None)
+        ego_to_world = np.eye(4)
+        if raw_pose is not None:
+            world_from_cam = _pose(raw_pose, scene_path, f"data[key={key}].datum.image.pose", zero_is_identity=True)
+            ego_to_world = world_from_cam @ ego_from_ref
+        frames.append(Frame(f"{n:06d}", ts, ego_to_world, images))
+    return Rig(tuple(cameras), ring_pairs(RING), tuple(frames), RING, folder)
+
+
+def _image(d: dict, file: Path, key: str) -> dict:
+    datum = _field(d, "datum", file, f"data[key={key}]", dict)
+    return _field(datum, "image", file, f"data[key={key}].datum", dict)
+
+
+def _check_image(path: Path, cam: Camera, file: Path, key: str) -> None:
+    if not path.is_file():
+        raise InputError(file, key, f"points at a missing file {path}")
+    w, h = image_size(path)
+    if (w, h) != (cam.width, cam.height):
+        raise InputError(path, "size", f"image is {w}x{h}, camera {cam.name} is {cam.width}x{cam.height}")
+
+
+__all__ = ["RING", "is_scene_folder", "load_ddad_scene", "parse_timestamp_us", "scene_files", "scene_folders"]

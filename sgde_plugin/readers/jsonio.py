@@ -1,0 +1,117 @@
+"""JSON helpers for the readers: whole files and streamed top-level arrays, errors as InputError."""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+_SEPARATOR = re.compile(r"\s*,?\s*")
+_CHUNK = 1 << 23  # characters read per step when streaming a table
+
+
+def read_json(path: Path) -> Any:
+    """A whole JSON file; InputError for a missing file or bad JSON."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(path, None, f"bad JSON ({exc})") from None
+
+
+def iter_json_array(
+    path: Path, object_pairs_hook: Callable[[list[tuple[str, Any]]], Any] | None = None
+) -> Iterator[Any]:
+    """Stream the elements of a file holding one JSON array, without holding the whole text.
+
+    `object_pairs_hook` (as in `json.loads`) turns each object into something smaller while it
+    is parsed. A truncated file or bad JSON is an InputError naming the element index.
+    """
+    decoder = json.JSONDecoder(object_pairs_hook=object_pairs_hook)
+    try:
+        f = open(path, encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    with f:
+        buf = _read(f, path)
+        eof = len(buf) < _CHUNK
+        pos = _SEPARATOR.match(buf, 0).end()
+        while not buf[pos:pos + 1] and not eof:
+            more = _read(f, path)
+            eof = len(more) < _CHUNK
+            buf += more
+            pos = _SEPARATOR.match(buf, 0).end()
+        if buf[pos:pos + 1] != "[":
+            raise InputError(path, None, "bad JSON (expected a top-level array)")
+        pos += 1
+        index = 0
+        while True:
+            pos = _SEPARATOR.match(buf, pos).end()
+            if pos < len(buf) and buf[pos] == "]":
+                if buf[pos + 1:].strip() or (not eof and f.read().strip()):
+                    raise InputError(path, None, "bad JSON (extra data after the array)")
+                return
+            try:
+                if pos >= len(buf):
+                    raise json.JSONDecodeError("end of buffer", buf, pos)
+                value, end = decoder.raw_decode(buf, pos)
+            except json.JSONDecodeError as exc:
+                if eof:
+                    what = "truncated" if not buf.rstrip().endswith("]") else "bad JSON"
+                    raise InputError(path, f"element {index}", f"{what} ({exc.msg})") from None
+                more = _read(f, path)
+                eof = len(more) < _CHUNK
+                buf = buf[pos:] + more
+                pos = 0
+                continue
+            pos = end
+            index += 1
+            yield value
+
+
+def _read(f: Any, path: Path) -> str:
+    try:
+        return f.read(_CHUNK)
+    except UnicodeDecodeError as exc:
+        raise InputError(path, None, f"not UTF-8 text ({exc.reason})") from None
+
+
+# --- field access with errors that name file and key ------------------------------------------
+def get(row: dict, key: str, file: Path | str | None, where: str, kinds: type | tuple[type, ...] | None = None,
+        alt: str | None = None, default: Any = ...) -> Any:
+    """`row[key]` (or `row[alt]`), checked against `kinds`; InputError naming `where.key` otherwise."""
+    if key in row:
+        value = row[key]
+    elif alt is not None and alt in row:
+        value = row[alt]
+    elif default is not ...:
+        return default
+    else:
+        raise InputError(file, f"{where}.{key}", "missing")
+    if kinds is not None:
+        bad_bool = isinstance(value, bool) and bool not in (kinds if isinstance(kinds, tuple) else (kinds,))
+        if bad_bool or not isinstance(value, kinds):
+            raise InputError(file, f"{where}.{key}", f"has the wrong type ({type(value).__name__})")
+    return value
+
+
+def number_list(row: dict, key: str, length: int, file: Path | str | None, where: str) -> np.ndarray:
+    """A list of `length` finite numbers as float64; InputError otherwise."""
+    value = get(row, key, file, where, list)
+    if len(value) != length or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        raise InputError(file, f"{where}.{key}", f"expected {length} numbers")
+    arr = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(file, f"{where}.{key}", "contains NaN or infinity")
+    return arr
+
+
+__all__ = ["get", "iter_json_array", "number_list", "read_json"]

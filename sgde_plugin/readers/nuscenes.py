@@ -1,0 +1,336 @@
+"""nuScenes v1.0 tables (read directly, no devkit) -> one `Rig` per scene.
+
+Layout: `<root>/<version>/{scene,sample,sample_data,calibrated_sensor,sensor,ego_pose}.json` and the
+images under `<root>/samples/...` and `<root>/sweeps/...` (paths in `sample_data.filename` are
+relative to `<root>`). Quaternions are (w, x, y, z), timestamps microseconds, translations metres;
+`calibrated_sensor` maps sensor -> ego and `ego_pose` maps ego -> world, both in the nuScenes ego
+frame (x forward, y left, z up), which is ours. Images are undistorted pinholes (`dist` null).
+
+Frames: one per keyframe (`sample`), with frame id = sample token; with `sweeps=True` also one per
+12 Hz CAM_FRONT sweep (frame id = that sample_data token), the other cameras taking their sweep
+nearest in time. Keyframes are identical in both modes. The frame's timestamp and `ego_to_world`
+come from the CAM_FRONT sample_data: nuScenes stores one ego pose per sample_data timestamp, so the
+six cameras of a frame have slightly different ego poses (up to ~50 ms apart); we keep the front
+camera's, and sweeps reuse the keyframe calibration (nuScenes calibrates per scene, not per sweep).
+
+The big tables (`sample_data`, `ego_pose`: ~2.6M rows each in v1.0-trainval) are streamed: each row
+is parsed, reduced to a small tuple (cameras only; keyframes only unless sweeps are asked for; only
+the asked-for scenes) and the text is dropped, so the full trainval set loads in bounded memory.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_left
+from collections import defaultdict
+from collections.abc import Collection
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import Camera, intrinsics_from_dict
+from ..errors import InputError
+from ..geometry import make_transform, quaternion_to_rotation
+from ..io import image_size
+from ..rig import Frame, Rig, ring_pairs
+from .jsonio import get, iter_json_array, number_list, read_json
+
+RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
+REFERENCE = "CAM_FRONT"  # the camera whose timestamp and ego pose a frame takes
+TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
+QUATERNION_TOL = 1e-3  # |q| must be 1 within this; the rotation uses the normalised q
+
+# kept per camera sample_data row (a plain tuple: ~1.2M of them for trainval with sweeps)
+_TOKEN, _SAMPLE, _EGO, _CHANNEL, _CALIB, _TIME, _KEY, _FILE, _SIZE = range(9)
+
+
+def is_tables_folder(folder: Path) -> bool:
+    """True if `folder` holds nuScenes tables (scene.json and sample_data.json)."""
+    return (folder / "scene.json").is_file() and (folder / "sample_data.json").is_file()
+
+
+def versions(root: Path) -> list[str]:
+    """Table folders (versions such as v1.0-mini) directly under a nuScenes root, sorted."""
+    if not root.is_dir():
+        return []
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and is_tables_folder(p))
+
+
+def scene_table(root: Path, version: str) -> list[tuple[str, str]]:
+    """(name, token) of every scene of one version, in table order (reads scene.json only)."""
+    path = root / version / "scene.json"
+    return [(get(row, "name", path, f"[{i}]", str), get(row, "token", path, f"[{i}]", str))
+            for i, row in enumerate(_rows(path))]
+
+
+def _rows(path: Path) -> list[dict]:
+    doc = read_json(path)
+    if not isinstance(doc, list) or not all(isinstance(r, dict) for r in doc):
+        raise InputError(path, None, "expected a JSON array of objects")
+    return doc
+
+
+def _pose(row: dict, file: Path, where: str) -> np.ndarray:
+    """4x4 transform from a row's `rotation` (w, x, y, z) and `translation`."""
+    q = number_list(row, "rotation", 4, file, where)
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_TOL:
+        raise InputError(file, f"{where}.rotation", f"quaternion is not unit length (norm {norm:.6g})")
+    return make_transform(quaternion_to_rotation(q), number_list(row, "translation", 3, file, where))
+
+
+@dataclass
+class _Scene:
+    token: str
+    name: str
+    samples: list[tuple[int, str]] = field(default_factory=list)  # (timestamp, sample token)
+
+
+class NuScenesTables:
+    """The nuScenes tables of one version, indexed by token once; `rig(scene)` builds a scene's Rig."""
+
+    def __init__(self, root: str | Path, version: str, scenes: Collection[str] | None = None,
+                 sweeps: bool = False):
+        """Load `<root>/<version>`; `scenes` (names or tokens) restricts what is kept, `sweeps` adds 12 Hz frames."""
+        self.root = Path(root)
+        self.version = version
+        self.sweeps = sweeps
+        self.dir = self.root / version
+        if not is_tables_folder(self.dir):
+            raise InputError(self.dir, None, "not a nuScenes table folder (no scene.json / sample_data.json)")
+        for name in TABLES:
+            if not (self.dir / f"{name}.json").is_file():
+                raise InputError(self.dir / f"{name}.json", None, "file not found (a nuScenes table)")
+        self._load_scenes(scenes)
+        self._load_samples()
+        self._load_calibration()
+        self._load_sample_data()
+        self._load_ego_poses()
+
+    # --- tables ------------------------------------------------------------------------------
+    def _load_scenes(self, wanted: Collection[str] | None) -> None:
+        path = self.dir / "scene.json"
+        self._scenes: dict[str, _Scene] = {}
+        for i, row in enumerate(_rows(path)):
+            token = get(row, "token", path, f"[{i}]", str)
+            self._scenes[token] = _Scene(token, get(row, "name", path, f"[{i}]", str))
+        if wanted is not None:
+            by_key = {s.name: s for s in self._scenes.values()} | self._scenes
+            missing = [w for w in wanted if w not in by_key]
+            if missing:
+                names = [s.name for s in self._scenes.values()]
+                some = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+                raise InputError(path, "name", f"no scene {missing[0]!r} ({len(names)} scenes: {some})")
+            keep = {by_key[w].token for w in wanted}
+            self._scenes = {t: s for t, s in self._scenes.items() if t in keep}
+
+    def _load_samples(self) -> None:
+        path = self.dir / "sample.json"
+        self._sample_scene: dict[str, str | None] = {}  # every sample token -> its scene if kept, else None
+        for i, row in enumerate(_rows(path)):
+            token = get(row, "token", path, f"[{i}]", str)
+            scene_token = get(row, "scene_token", path, f"[token={token}]", str)
+            scene = self._scenes.get(scene_token)
+            self._sample_scene[token] = scene.token if scene else None
+            if scene is not None:
+                scene.samples.append((get(row, "timestamp", path, f"[token={token}]", int), token))
+        for scene in self._scenes.values():
+            scene.samples.sort()
+
+    def _load_calibration(self) -> None:
+        sensors_path = self.dir / "sensor.json"
+        channel_of: dict[str, str] = {}
+        for i, row in enumerate(_rows(sensors_path)):
+            token = get(row, "token", sensors_path, f"[{i}]", str)
+            channel_of[token] = get(row, "channel", sensors_path, f"[token={token}]", str)
+        missing = [c for c in RING if c not in channel_of.values()]
+        if missing:
+            raise InputError(sensors_path, "channel", f"camera {missing[0]} is missing")
+        path = self.dir / "calibrated_sensor.json"
+        self._calib_rows: dict[str, dict] = {}
+        self._calib_channel: dict[str, str | None] = {}  # every calibration token -> ring camera or None
+        for i, row in enumerate(_rows(path)):
+            token = get(row, "token", path, f"[{i}]", str)
+            sensor = get(row, "sensor_token", path, f"[token={token}]", str)
+            if sensor not in channel_of:
+                raise InputError(path, f"[token={token}].sensor_token", f"unknown sensor {sensor!r}")
+            channel = channel_of[sensor]
+            self._calib_channel[token] = channel if channel in RING else None
+            if channel in RING:
+                self._calib_rows[token] = row
+        self._channels = {c: c for c in RING}  # one shared string object per channel
+
+    def _load_sample_data(self) -> None:
+        path = self.dir / "sample_data.json"
+        calib_channel, sample_scene, channels = self._calib_channel, self._sample_scene, self._channels
+        keyframes_only = not self.sweeps
+        sizes: dict[tuple[int, int], tuple[int, int]] = {}
+        shared_calib = {t: t for t in calib_channel}
+
+        def reduce(pairs: list) -> tuple | None:
+            row = dict(pairs)
+            try:
+                calib = row["calibrated_sensor_token"]
+                channel = calib_channel[calib]
+                if channel is None:
+                    return None
+                key = row["is_key_frame"]
+                if keyframes_only and key is not True:
+                    return None
+                sample = row["sample_token"]
+                if sample_scene[sample] is None:
+                    return None
+                ts, w, h, filename = row["timestamp"], row["width"], row["height"], row["filename"]
+                out = (row["token"], sample, row["ego_pose_token"], channels[channel], shared_calib[calib],
+                       ts, key, filename, sizes.setdefault((w, h), (w, h)))
+            except KeyError as exc:
+                raise _row_error(path, row, exc) from None
+            if type(ts) is not int or type(w) is not int or type(h) is not int or type(filename) is not str:
+                raise InputError(path, f"[token={row['token']}]", "timestamp/width/height/filename has the wrong type")
+            return out
+
+        self._rows_by_scene: dict[str, list[tuple]] = defaultdict(list)
+        for item in iter_json_array(path, reduce):
+            if item is not None:
+                self._rows_by_scene[sample_scene[item[_SAMPLE]]].append(item)
+
+    def _load_ego_poses(self) -> None:
+        path = self.dir / "ego_pose.json"
+        needed: set[str] = set()
+        for rows in self._rows_by_scene.values():
+            needed.update(r[_EGO] for r in rows if r[_CHANNEL] == REFERENCE)
+
+        def reduce(pairs: list) -> tuple | None:
+            row = dict(pairs)
+            token = row.get("token")
+            if token not in needed:
+                return None
+            return token, _pose(row, path, f"[token={token}]")
+
+        self._ego: dict[str, np.ndarray] = {}
+        for item in iter_json_array(path, reduce):
+            if item is not None:
+                self._ego[item[0]] = item[1]
+
+    # --- rigs --------------------------------------------------------------------------------
+    def scene_names(self) -> list[str]:
+        """Names of the loaded scenes, in table order."""
+        return [s.name for s in self._scenes.values()]
+
+    def rig(self, scene: str, check_images: bool = False) -> Rig:
+        """The Rig of one loaded scene (name or token); `check_images` checks every file and size."""
+        found = [s for s in self._scenes.values() if scene in (s.name, s.token)]
+        if not found:
+            raise InputError(self.dir / "scene.json", "name", f"no scene {scene!r} loaded")
+        sc = found[0]
+        data_path = self.dir / "sample_data.json"
+        rows = self._rows_by_scene.get(sc.token, [])
+        by_channel: dict[str, list[tuple]] = {c: [] for c in RING}
+        for r in rows:
+            by_channel[r[_CHANNEL]].append(r)
+        cameras = []
+        for channel in RING:
+            chan_rows = by_channel[channel]
+            if not chan_rows:
+                raise InputError(data_path, f"scene {sc.name}", f"camera {channel} is missing (no key frames)")
+            cameras.append(self._camera(sc, channel, chan_rows))
+            chan_rows.sort(key=lambda r: r[_TIME])
+
+        key_rows = {(r[_SAMPLE], r[_CHANNEL]): r for r in rows if r[_KEY] is True}
+        frames: list[tuple[str, dict[str, tuple]]] = []
+        if not sc.samples:
+            raise InputError(self.dir / "sample.json", f"scene {sc.name}", "has no samples")
+        keyframe_of = {}
+        for _, sample in sc.samples:
+            chosen = {}
+            for channel in RING:
+                r = key_rows.get((sample, channel))
+                if r is None:
+                    raise InputError(data_path, f"sample {sample}", f"camera {channel} is missing (no key frame)")
+                chosen[channel] = r
+            keyframe_of[chosen[REFERENCE][_TOKEN]] = (sample, chosen)
+        if not self.sweeps:
+            frames = list(keyframe_of.values())
+        else:
+            times = {c: [r[_TIME] for r in by_channel[c]] for c in RING}
+            for r in by_channel[REFERENCE]:
+                if r[_TOKEN] in keyframe_of:
+                    frames.append(keyframe_of[r[_TOKEN]])
+                elif r[_KEY] is not True:
+                    frames.append((r[_TOKEN], {c: _nearest(by_channel[c], times[c], r[_TIME]) for c in RING}))
+        return Rig(
+            tuple(cameras), ring_pairs(RING), tuple(self._frame(fid, ch, check_images, cameras) for fid, ch in frames),
+            RING, self.root,
+        )
+
+    def _camera(self, sc: _Scene, channel: str, rows: list[tuple]) -> Camera:
+        calibs = {r[_CALIB] for r in rows}
+        sizes = {r[_SIZE] for r in rows}
+        data_path = self.dir / "sample_data.json"
+        if len(calibs) != 1:
+            raise InputError(data_path, f"scene {sc.name}", f"{channel} uses {len(calibs)} calibrations (expected 1)")
+        if len(sizes) != 1:
+            raise InputError(data_path, f"scene {sc.name}", f"{channel} images have {len(sizes)} different sizes")
+        token = calibs.pop()
+        (w, h), = sizes
+        path = self.dir / "calibrated_sensor.json"
+        row = self._calib_rows[token]
+        where = f"[token={token}]"
+        entry = {"model": "pinhole", "width": w, "height": h, "K": get(row, "camera_intrinsic", path, where, list),
+                 "dist": None}
+        try:
+            intrinsics = intrinsics_from_dict(entry, where)
+        except InputError as exc:
+            key = exc.key.replace(f"{where}.K", f"{where}.camera_intrinsic") if exc.key else exc.key
+            raise InputError(path, key, exc.problem) from None
+        return Camera(channel, intrinsics, _pose(row, path, where))
+
+    def _frame(self, frame_id: str, chosen: dict[str, tuple], check: bool, cameras: list[Camera]) -> Frame:
+        ref = chosen[REFERENCE]
+        pose = self._ego.get(ref[_EGO])
+        if pose is None:
+            raise InputError(self.dir / "ego_pose.json", f"token {ref[_EGO]}",
+                             f"missing (referenced by sample_data {ref[_TOKEN]})")
+        images = {c: self.root / r[_FILE] for c, r in chosen.items()}
+        if check:
+            for cam in cameras:
+                path, r = images[cam.name], chosen[cam.name]
+                if not path.is_file():
+                    raise InputError(self.dir / "sample_data.json", f"[token={r[_TOKEN]}].filename",
+                                     f"points at a missing file {path}")
+                if image_size(path) != (cam.width, cam.height):
+                    w, h = image_size(path)
+                    raise InputError(path, "size", f"image is {w}x{h}, sample_data says {cam.width}x{cam.height}")
+        return Frame(frame_id, ref[_TIME], pose, images)
+
+
+def _nearest(rows: list[tuple], times: list[int], t: int) -> tuple:
+    i = bisect_left(times, t)
+    if i == 0:
+        return rows[0]
+    if i == len(rows):
+        return rows[-1]
+    return rows[i] if times[i] - t < t - times[i - 1] else rows[i - 1]
+
+
+def _row_error(path: Path, row: dict, exc: KeyError) -> InputError:
+    """A missing column or a token that points nowhere, named by the row's token."""
+    key = exc.args[0]
+    where = f"[token={row.get('token', '?')}]"
+    for column in ("token", "calibrated_sensor_token", "is_key_frame", "sample_token", "timestamp", "width",
+                   "height", "filename", "ego_pose_token"):
+        if column not in row:
+            return InputError(path, f"{where}.{column}", "missing")
+    column = "calibrated_sensor_token" if row.get("calibrated_sensor_token") == key else "sample_token"
+    table = "calibrated_sensor" if column == "calibrated_sensor_token" else "sample"
+    return InputError(path, f"{where}.{column}", f"points at no {table} row ({key!r})")
+
+
+def load_nuscenes(root: str | Path, version: str, scene: str | None = None, sweeps: bool = False,
+                  check_images: bool = False) -> list[Rig]:
+    """Rigs of one scene (name or token) or of every scene of a nuScenes version."""
+    tables = NuScenesTables(root, version, None if scene is None else [scene], sweeps)
+    return [tables.rig(name, check_images) for name in tables.scene_names()]
+
+
+__all__ = ["RING", "NuScenesTables", "is_tables_folder", "load_nuscenes", "scene_table", "versions"]
