@@ -1,0 +1,327 @@
+"""Building a prior cache: resumable, in parallel processes or as Ray actors, all writing one store.
+
+`build_cache(rig, out, config)` computes the prior of every frame that the cache does not hold
+yet and writes it frame by frame. Each worker computes and writes whole frames itself (so a Ray
+cluster writes straight into a shared store); a frame counts as done only once its done marker
+is written after its data, so a build killed at any moment restarts where it stopped and ends
+with the same content as an uninterrupted one.
+
+The computation is a picklable callable `compute(frame_id) -> {camera: (depth, confidence)}`;
+the default, `PriorCompute`, runs the stereo `PriorBuilder` on the rig's images. Each worker uses
+one thread for OpenCV and torch, so N workers use N cores.
+"""
+
+from __future__ import annotations
+
+import collections
+import multiprocessing
+import os
+import re
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..progress import progress
+from .fingerprint import config_document, fingerprint_parts
+from .store import SceneWriter, location_name, prepare_scene, remove_partial_files
+
+Compute = Callable[[str], Mapping[str, tuple[np.ndarray, np.ndarray | None]]]
+ENGINES = ("local", "ray")
+
+
+class PriorCompute:
+    """The default compute: load a frame's images (and the rig's masks) and run PriorBuilder."""
+
+    def __init__(self, rig: Any, config: Any):
+        self.rig = rig
+        self.config = config
+        self._builder: Any = None
+        self._masks: dict[str, np.ndarray] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_builder": None, "_masks": None}
+
+    def __call__(self, frame_id: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Priors of all cameras of one frame."""
+        from ..rig import load_frame_images
+
+        if self._builder is None:
+            from ..stereo.pipeline import PriorBuilder
+
+            self._builder = PriorBuilder(self.rig, self.config)
+            masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
+            self._masks = {c: m for c, m in masks.items() if m is not None} or None
+        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks)
+        return {cam: (m.depth, m.confidence) for cam, m in maps.items()}
+
+
+@dataclass
+class BuildReport:
+    """What a build did."""
+
+    location: str
+    scene: str
+    fingerprint: str
+    frames_total: int
+    frames_built: int
+    frames_already_done: int
+    valid_pixels: int
+    seconds: float
+    workers: int
+    engine: str
+
+    def line(self) -> str:
+        """One-line summary for the command line."""
+        rate = self.frames_built / self.seconds if self.seconds > 0 else 0.0
+        return (
+            f"{self.location} [{self.scene}]: {self.frames_built} frames built, {self.frames_already_done} already "
+            f"there, {self.frames_total} in scene; {self.seconds:.1f} s ({rate:.2f} frames/s, {self.workers} "
+            f"{self.engine} workers); fingerprint {self.fingerprint}"
+        )
+
+
+def default_scene_name(rig: Any) -> str:
+    """The rig's scene name: rig.json's 'scene' key, else its folder's name, else 'scene'."""
+    name = rig.extra.get("scene") if isinstance(getattr(rig, "extra", None), Mapping) else None
+    if not isinstance(name, str) or not name:
+        name = Path(rig.root).resolve().name if getattr(rig, "root", None) is not None else "scene"
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", name).lstrip("._") or "scene"
+    return name
+
+
+def limit_threads(n: int) -> dict[str, int]:
+    """Set OpenCV's and torch's thread counts to n; returns the previous values."""
+    previous = {}
+    try:
+        import cv2
+
+        previous["cv2"] = cv2.getNumThreads()
+        cv2.setNumThreads(n)
+    except ImportError:  # pragma: no cover - cv2 is a dependency
+        pass
+    import sys
+
+    if "torch" in sys.modules:
+        torch = sys.modules["torch"]
+        previous["torch"] = torch.get_num_threads()
+        torch.set_num_threads(n)
+    return previous
+
+
+def _restore_threads(previous: Mapping[str, int]) -> None:
+    if "cv2" in previous:
+        import cv2
+
+        cv2.setNumThreads(previous["cv2"])
+    if "torch" in previous:
+        import torch
+
+        torch.set_num_threads(previous["torch"])
+
+
+def run_frame(compute: Compute, writer: SceneWriter, index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+    """Compute and write one frame: (index, valid pixels, error as (file, key, problem) or None)."""
+    try:
+        maps = compute(frame_id)
+        return index, writer.write_frame(index, maps), None
+    except InputError as exc:  # passed back as a tuple: InputError does not pickle
+        return index, 0, (exc.file, exc.key, exc.problem)
+
+
+# --- local processes ----------------------------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(compute: Compute, writer: SceneWriter) -> None:
+    limit_threads(1)
+    _WORKER["compute"], _WORKER["writer"] = compute, writer
+
+
+def _worker_frame(index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+    return run_frame(_WORKER["compute"], _WORKER["writer"], index, frame_id)
+
+
+def _mp_context() -> multiprocessing.context.BaseContext:
+    methods = multiprocessing.get_all_start_methods()
+    if "forkserver" in methods:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["sgde_plugin.cache.build"])
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def _run_local(tasks: list[tuple[int, str]], compute: Compute, writer: SceneWriter, workers: int, on_done) -> None:
+    if workers <= 1:
+        previous = limit_threads(1)
+        try:
+            for index, fid in tasks:
+                on_done(run_frame(compute, writer, index, fid))
+        finally:
+            _restore_threads(previous)
+        return
+    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(), initializer=_init_worker, initargs=(compute, writer))
+    with pool as ex:
+        queue = collections.deque(tasks)
+        running = set()
+        try:
+            while queue or running:
+                while queue and len(running) < 2 * workers:
+                    running.add(ex.submit(_worker_frame, *queue.popleft()))
+                finished, running = wait(running, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    on_done(fut.result())
+        except BaseException:
+            for fut in running:
+                fut.cancel()
+            raise
+
+
+# --- Ray ----------------------------------------------------------------------------------
+class RayFrameWorker:
+    """A Ray actor body: holds one compute (built once) and a writer, processes frames."""
+
+    def __init__(self, compute: Compute, writer: SceneWriter):
+        limit_threads(1)
+        self.compute, self.writer = compute, writer
+
+    def run(self, index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+        """Compute and write one frame."""
+        return run_frame(self.compute, self.writer, index, frame_id)
+
+
+def _run_ray(
+    tasks: list[tuple[int, str]], compute: Compute, writer: SceneWriter, workers: int, address: str | None, on_done
+) -> int:
+    try:
+        import ray
+    except ImportError:
+        raise InputError(None, "--engine ray", "ray is not installed (pip install 'sgde-plugin[ray]')") from None
+    own = not ray.is_initialized()
+    if own:
+        kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+        if address:
+            ray.init(address=address, **kwargs)
+        else:
+            ray.init(num_cpus=max(1, workers), **kwargs)
+    try:
+        if address and workers <= 0:
+            workers = int(ray.cluster_resources().get("CPU", 1))
+        workers = max(1, min(workers, len(tasks)))
+        actor_cls = ray.remote(num_cpus=1)(RayFrameWorker)
+        actors = [actor_cls.remote(compute, writer) for _ in range(workers)]
+        queue = collections.deque(tasks)
+        running: dict[Any, Any] = {}
+        for actor in actors:
+            for _ in range(2):
+                if queue:
+                    running[actor.run.remote(*queue.popleft())] = actor
+        while running:
+            done, _ = ray.wait(list(running), num_returns=1)
+            for ref in done:
+                actor = running.pop(ref)
+                on_done(ray.get(ref))
+                if queue:
+                    running[actor.run.remote(*queue.popleft())] = actor
+        return workers
+    finally:
+        if own:
+            ray.shutdown()
+
+
+# --- the build ----------------------------------------------------------------------------
+def build_cache(
+    rig: Any,
+    out: Any,
+    config: Any = None,
+    workers: int = 1,
+    engine: str = "local",
+    *,
+    scene: str | None = None,
+    compute: Compute | None = None,
+    algo_version: str | None = None,
+    ray_address: str | None = None,
+    storage_options: Mapping[str, Any] | None = None,
+    show_progress: bool | None = None,
+) -> BuildReport:
+    """Build (or resume) the priors of every frame of `rig` into the cache `out` (folder or fsspec
+    URL). Refuses (InputError) a cache built with another calibration or configuration."""
+    if engine not in ENGINES:
+        raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
+    if config is None and compute is None:
+        from ..stereo.pipeline import PriorConfig
+
+        config = PriorConfig()
+    if config is None:
+        config = {}
+    out = str(out) if isinstance(out, Path) else out
+    scene = scene or default_scene_name(rig)
+    parts = dict(fingerprint_parts(rig, config, algo_version))
+    parts["config_document"] = config_document(config, algo_version)
+    start = time.perf_counter()
+    plan = prepare_scene(out, scene, rig, parts, storage_options)
+    remove_partial_files(out, scene)
+    if compute is None:
+        compute = PriorCompute(rig, config)
+    writer = SceneWriter(out, scene, storage_options)
+    tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
+    workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
+    built, pixels = 0, 0
+    bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
+
+    def on_done(result: tuple[int, int, tuple | None]) -> None:
+        nonlocal built, pixels
+        _, count, error = result
+        if error is not None:
+            raise InputError(*error)
+        built += 1
+        pixels += count
+        bar.update(1)
+
+    used = 0
+    try:
+        if tasks and engine == "ray":
+            used = _run_ray(tasks, compute, writer, workers, ray_address, on_done)
+        elif tasks:
+            used = max(1, min(workers, len(tasks)))
+            _run_local(tasks, compute, writer, used, on_done)
+    finally:
+        bar.close()
+    return BuildReport(
+        location=location_name(out),
+        scene=scene,
+        fingerprint=parts["fingerprint"],
+        frames_total=len(plan.frame_ids),
+        frames_built=built,
+        frames_already_done=plan.already_done,
+        valid_pixels=pixels,
+        seconds=time.perf_counter() - start,
+        workers=used,
+        engine=engine,
+    )
+
+
+def default_workers() -> int:
+    """Number of worker processes by default: the CPUs this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+__all__ = [
+    "BuildReport",
+    "ENGINES",
+    "PriorCompute",
+    "RayFrameWorker",
+    "build_cache",
+    "default_scene_name",
+    "default_workers",
+    "limit_threads",
+    "run_frame",
+]
