@@ -1,19 +1,49 @@
-"""`sgde synth`: not implemented yet (see the open issue)."""
+"""`sgde synth`: render a synthetic surround sequence into an sgde-rig/1 folder."""
 
 from __future__ import annotations
 
 import argparse
-import sys
+from pathlib import Path
 
-HELP = "(not implemented yet)"
+from ..errors import InputError
+
+HELP = "render a synthetic street sequence (nuscenes, ddad or urban-fisheye rig) into an sgde-rig/1 folder"
+
+PRESETS = ("nuscenes", "ddad", "urban-fisheye")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No arguments until the command exists."""
-    parser.add_argument("rest", nargs=argparse.REMAINDER)
+    """Arguments of `sgde synth`."""
+    parser.add_argument("--preset", required=True, choices=PRESETS, help="camera rig")
+    parser.add_argument("--frames", required=True, type=int, help="number of frames (10 Hz)")
+    parser.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
+    parser.add_argument("--seed", type=int, default=0, help="scene and calibration-noise seed (default 0)")
+    parser.add_argument("--scale", type=float, default=1.0, help="image size factor (default 1)")
+    parser.add_argument("--pose-noise-deg", type=float, default=1.0,
+                        help="rotation error of each camera in rig.json, degrees (default 1)")
+    parser.add_argument("--pose-noise-m", type=float, default=0.05,
+                        help="translation error of each camera in rig.json, metres (default 0.05)")
+    parser.add_argument("--supersample", type=int, default=1, help="k x k colour samples per pixel (default 1)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Say the command does not exist yet and fail."""
-    print("sgde synth: not implemented yet", file=sys.stderr)
-    return 1
+    """Check the arguments, render, write atomically, print where."""
+    from ..synth.sequence import write_synth
+    from ..synth.world import MAX_FRAMES
+
+    out = Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "--out", "exists and is not an empty folder")
+    if not 1 <= args.frames <= MAX_FRAMES:
+        raise InputError(None, "--frames", f"must be between 1 and {MAX_FRAMES}")
+    if not 0 < args.scale <= 4:
+        raise InputError(None, "--scale", "must be in (0, 4]")
+    if args.pose_noise_deg < 0 or args.pose_noise_m < 0:
+        raise InputError(None, "--pose-noise-deg/--pose-noise-m", "must be >= 0")
+    if not 1 <= args.supersample <= 4:
+        raise InputError(None, "--supersample", "must be between 1 and 4")
+    path = write_synth(args.preset, args.frames, out, seed=args.seed, scale=args.scale,
+                       pose_noise_deg=args.pose_noise_deg, pose_noise_m=args.pose_noise_m,
+                       supersample=args.supersample)
+    print(f"wrote {path}: preset {args.preset}, {args.frames} frames, seed {args.seed}, scale {args.scale}")
+    return 0

@@ -1,0 +1,150 @@
+"""Synthetic sequences: a preset rig driving down the street at 10 Hz, in memory or as an sgde-rig/1 folder.
+
+`rig_true` carries the true extrinsics the images were rendered with; `rig` carries extrinsics
+perturbed like a real data set's calibration: each camera's rotation is multiplied by a rotation
+of exactly `pose_noise_deg` degrees about a random axis, and its position moved by exactly
+`pose_noise_m` metres in a random direction (seeded).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import Camera
+from ..geometry import make_transform, rodrigues
+from ..io import write_depth_png, write_image
+from ..rig import Frame, Rig, ring_pairs, write_rig_json
+from .presets import preset_cameras, preset_ring
+from .render import render
+from .world import MAX_FRAMES, World, build_world
+
+FRAME_RATE_HZ = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class SynthSequence:
+    """A rendered synthetic sequence: true and perturbed rigs, images and depths per frame and camera."""
+
+    rig_true: Rig
+    rig: Rig
+    world: World
+    images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    depths: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+def frame_id(index: int) -> str:
+    """Frame id of the index-th frame."""
+    return f"{index:06d}"
+
+
+def perturb_extrinsics(cameras: list[Camera], seed: int, noise_deg: float, noise_m: float) -> dict[str, np.ndarray]:
+    """Per camera: sensor_to_ego rotated by exactly `noise_deg` about a random axis, moved by exactly `noise_m`."""
+    rng = np.random.default_rng([int(seed), 0xCA11B])
+    out = {}
+    for cam in cameras:
+        axis = rng.standard_normal(3)
+        axis /= np.linalg.norm(axis)
+        direction = rng.standard_normal(3)
+        direction /= np.linalg.norm(direction)
+        R = rodrigues(axis * math.radians(noise_deg)) @ cam.sensor_to_ego[:3, :3]
+        t = cam.sensor_to_ego[:3, 3] + direction * noise_m
+        out[cam.name] = make_transform(R, t)
+    return out
+
+
+def _check(preset: str, frames: int, scale: float, pose_noise_deg: float, pose_noise_m: float) -> None:
+    preset_ring(preset)  # raises for an unknown preset
+    if not 1 <= frames <= MAX_FRAMES:
+        raise ValueError(f"frames must be in 1..{MAX_FRAMES}, got {frames}")
+    if not 0 < scale <= 4:
+        raise ValueError(f"scale must be in (0, 4], got {scale}")
+    if pose_noise_deg < 0 or pose_noise_m < 0:
+        raise ValueError("pose noise must be >= 0")
+
+
+def _rigs(preset: str, frames: int, seed: int, scale: float, noise_deg: float, noise_m: float,
+          world: World) -> tuple[Rig, Rig]:
+    cameras = preset_cameras(preset, scale)
+    ring = tuple(preset_ring(preset))
+    frame_list = tuple(
+        Frame(frame_id(i), int(round(i * 1e6 / FRAME_RATE_HZ)), world.ego_pose(i / FRAME_RATE_HZ))
+        for i in range(frames)
+    )
+    info = {"preset": preset, "seed": int(seed), "scale": float(scale), "frame_rate_hz": FRAME_RATE_HZ}
+    rig_true = Rig(tuple(cameras), ring_pairs(ring), frame_list, ring, extra={"synth": {**info, "extrinsics": "true"}})
+    noisy = perturb_extrinsics(cameras, seed, noise_deg, noise_m)
+    rig = rig_true.with_extrinsics(noisy).with_extra(
+        synth={**info, "extrinsics": "perturbed", "pose_noise_deg": float(noise_deg), "pose_noise_m": float(noise_m)}
+    )
+    return rig_true, rig
+
+
+def _render_frames(world: World, rig_true: Rig, supersample: int,
+                   sink: Callable[[str, str, np.ndarray, np.ndarray], None], show_progress: bool | None) -> None:
+    from ..progress import progress
+
+    jobs = [(fr, cam) for fr in rig_true.frames for cam in rig_true.cameras]
+    for fr, cam in progress(jobs, desc="synth", total=len(jobs), enabled=show_progress):
+        rgb, depth = render(world, cam, fr.ego_to_world, fr.timestamp_us * 1e-6, supersample)
+        sink(fr.id, cam.name, rgb, depth)
+
+
+def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, pose_noise_deg: float = 1.0,
+                   pose_noise_m: float = 0.05, supersample: int = 1) -> SynthSequence:
+    """Render a sequence in memory (images and depths keyed by frame id, then camera name)."""
+    _check(preset, frames, scale, pose_noise_deg, pose_noise_m)
+    world = build_world(seed)
+    rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world)
+    seq = SynthSequence(rig_true, rig, world)
+
+    def keep(fid: str, cam: str, rgb: np.ndarray, depth: np.ndarray) -> None:
+        seq.images.setdefault(fid, {})[cam] = rgb
+        seq.depths.setdefault(fid, {})[cam] = depth
+
+    _render_frames(world, rig_true, supersample, keep, show_progress=False)
+    return seq
+
+
+def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, scale: float = 1.0,
+                pose_noise_deg: float = 1.0, pose_noise_m: float = 0.05, supersample: int = 1,
+                show_progress: bool | None = None) -> Path:
+    """Render a sequence into an sgde-rig/1 folder (built in a temporary sibling, renamed at the end).
+
+    `out_dir` must not exist or be an empty folder. Writes rig.json (perturbed extrinsics),
+    rig_true.json (true extrinsics), frames/<id>/<camera>.png and depth/<id>/<camera>.png.
+    """
+    _check(preset, frames, scale, pose_noise_deg, pose_noise_m)
+    out = Path(out_dir)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise FileExistsError(f"{out} exists and is not an empty folder")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    world = build_world(seed)
+    rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        def save(fid: str, cam: str, rgb: np.ndarray, depth: np.ndarray) -> None:
+            write_image(tmp / "frames" / fid / f"{cam}.png", rgb)
+            write_depth_png(tmp / "depth" / fid / f"{cam}.png", depth)
+
+        for fr in rig_true.frames:
+            (tmp / "frames" / fr.id).mkdir(parents=True, exist_ok=True)
+            (tmp / "depth" / fr.id).mkdir(parents=True, exist_ok=True)
+        _render_frames(world, rig_true, supersample, save, show_progress)
+        write_rig_json(rig, tmp / "rig.json")
+        write_rig_json(rig_true, tmp / "rig_true.json")
+        os.chmod(tmp, 0o755)
+        if out.exists():
+            out.rmdir()
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out

@@ -1,0 +1,223 @@
+"""Materials of the synthetic world: view-independent albedo textures and Lambertian shading.
+
+Colour depends only on the surface point (its texture coordinates on its own surface), the
+surface normal and a fixed sun, never on the viewing direction. The pixel footprint (metres) is
+only used to band-limit the texture (see `noise`), which is what a real pixel integrates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .noise import band, fbm, stripes
+from .world import CAR_BODY, CAR_GLASS, FACADE, METAL, SIDEWALK, TYRE, World
+
+_SKY_HORIZON = torch.tensor([0.78, 0.84, 0.90])
+_SKY_ZENITH = torch.tensor([0.35, 0.52, 0.80])
+_PAINT = torch.tensor([0.88, 0.88, 0.84])
+_GLASS = torch.tensor([0.16, 0.20, 0.25])
+_FRAME = torch.tensor([0.85, 0.84, 0.80])
+_MORTAR = torch.tensor([0.72, 0.70, 0.66])
+_ROOF = torch.tensor([0.30, 0.29, 0.28])
+
+# octave gains (7 octaves, lattice spacing texel * 2**c)
+_G_FINE = torch.tensor([0.07, 0.08, 0.08, 0.07, 0.06, 0.05, 0.04])
+_G_COARSE = torch.tensor([0.05, 0.06, 0.07, 0.07, 0.06, 0.05, 0.05])
+_G_SOFT = torch.tensor([0.02, 0.025, 0.03, 0.03, 0.03, 0.025, 0.02])
+
+
+def sky(d: Tensor) -> Tensor:
+    """Sky colour by ray elevation (a plain gradient)."""
+    e = d[:, 2].clamp(0, 1).sqrt()[:, None]
+    return _SKY_HORIZON * (1 - e) + _SKY_ZENITH * e
+
+
+def _mix(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
+    return a * (1 - w[:, None]) + b * w[:, None]
+
+
+def _footprint(t: Tensor, pixel_angle: Tensor, n_dot_d: Tensor) -> Tensor:
+    return t * pixel_angle / n_dot_d.abs().clamp_min(0.2)
+
+
+def ground_albedo(world: World, x: Tensor, y: Tensor, f: Tensor) -> Tensor:
+    """Asphalt with grain and stains, lane markings and zebra crossings; (n, 3)."""
+    bank = world.noise
+    grain = fbm(bank, x + 13.1, y + 7.7, f, 0.012, _G_FINE * 1.6)
+    stain = fbm(bank, y * 0.97 + 51.0, x * 0.97 + 3.3, f, 0.2, _G_COARSE * 1.4)
+    base = 0.30 * (1 + grain + stain)
+    asphalt = base[:, None] * torch.tensor([0.96, 0.98, 1.0])
+    ay = y.abs()
+    centre = band(y, -0.07, 0.07, f) * stripes(x, 9.0, 3.0, f)
+    lanes = band(ay, 3.45, 3.60, f) * stripes(x + 1.0, 4.0, 2.5, f)
+    edge = band(ay, 5.65, 5.80, f)
+    xm = torch.remainder(x + 40.0, 150.0)
+    zebra = band(xm, 70.0, 74.0, f) * stripes(y + 6.0, 1.0, 0.5, f) * band(ay, 0.0, 5.5, f)
+    paint = torch.maximum(torch.maximum(centre, lanes), torch.maximum(edge, zebra)) * (0.85 + 2 * grain).clamp(0, 1)
+    return _mix(asphalt, _PAINT * (1 + 0.5 * grain[:, None]), paint)
+
+
+def facade_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor, params: Tensor) -> Tensor:
+    """Walls (brick or plaster) with floors of framed windows and shop windows at street level; (n, 3)."""
+    bank = world.noise
+    floor_h, spacing, win_w, win_h, brick, top = params.unbind(1)
+    grain = fbm(bank, s, z, f, 0.01, _G_FINE)
+    blotch = fbm(bank, z * 0.9 + 11.0, s * 0.9 + 5.0, f, 0.15, _G_COARSE * 1.3)
+    wall = colour * (1 + grain + blotch)[:, None]
+    # bricks: 7.5 cm courses, 24 cm bricks in running bond, 1 cm mortar
+    row = torch.floor(z / 0.075)
+    shift = torch.remainder(row, 2.0) * 0.12
+    mortar = 1 - (1 - stripes(z, 0.075, 0.01, f)) * (1 - stripes(s + shift, 0.24, 0.01, f))
+    wall = _mix(wall, _MORTAR * (1 + grain[:, None]), mortar * brick * 0.85)
+    # a cornice line at every floor
+    cornice = stripes(z - floor_h + 0.1, floor_h, 0.22, f) * band(z, floor_h - 0.5, top - 0.3, f)
+    wall = _mix(wall, colour * 0.75 + 0.2, cornice * 0.8)
+    # framed windows on the upper floors
+    sill = (floor_h - win_h) / 2
+    x0 = (spacing - win_w) / 2
+    upper = band(z, floor_h, top - 0.8, f)
+    frame = stripes(s - x0 + 0.08, spacing, win_w + 0.16, f) * stripes(z - sill + 0.08, floor_h, win_h + 0.16, f)
+    glass = stripes(s - x0, spacing, win_w, f) * stripes(z - sill, floor_h, win_h, f)
+    # shop windows at street level
+    shop = band(z, 0.55, floor_h - 0.6, f) * stripes(s - 0.4, 2 * spacing, 1.5 * spacing, f)
+    glass_col = _GLASS * (1 + 2.5 * blotch[:, None] + grain[:, None])
+    out = _mix(wall, _FRAME * (1 + 0.5 * grain[:, None]), frame * upper)
+    return _mix(out, glass_col, torch.maximum(glass * upper, shop))
+
+
+def car_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor, material: Tensor,
+               top: Tensor) -> Tensor:
+    """Car paint with door seams and a trim line, tinted glass on the cabin sides, dark tyres; (n, 3)."""
+    bank = world.noise
+    grain = fbm(bank, s + 3.0, z + 1.0, f, 0.01, _G_SOFT * 2)
+    paint = colour * (1 + grain[:, None] + 0.6 * fbm(bank, z, s, f, 0.08, _G_SOFT)[:, None])
+    seams = stripes(s + 0.45, 1.05, 0.02, f) * band(z, 0.35, 0.95, f)
+    trim = band(torch.remainder(z, 10.0), 0.62, 0.68, f)
+    body = _mix(paint, paint * 0.35, torch.maximum(seams, trim))
+    glass_col = _GLASS * 0.7 * (1 + 3 * fbm(bank, s * 0.5 + 9.0, z, f, 0.05, _G_COARSE)[:, None])
+    pillars = stripes(s + 0.1, 0.9, 0.12, f)
+    cabin = _mix(glass_col, paint, pillars)
+    cabin = torch.where(top[:, None], paint, cabin)
+    tyre = torch.tensor([0.07, 0.07, 0.075]) * (1 + 2 * grain[:, None])
+    out = torch.where((material == CAR_GLASS)[:, None], cabin, body)
+    return torch.where((material == TYRE)[:, None], tyre, out)
+
+
+def sidewalk_albedo(world: World, x: Tensor, y: Tensor, f: Tensor, top: Tensor) -> Tensor:
+    """Paving slabs with joints on top, concrete curb faces; (n, 3)."""
+    bank = world.noise
+    grain = fbm(bank, x + 71.0, y + 17.0, f, 0.01, _G_FINE * 1.3)
+    blotch = fbm(bank, y + 5.0, x + 2.0, f, 0.12, _G_COARSE)
+    slab = torch.tensor([0.62, 0.60, 0.56]) * (1 + grain + blotch)[:, None]
+    joints = 1 - (1 - stripes(x, 0.6, 0.012, f)) * (1 - stripes(y, 0.6, 0.012, f))
+    slab = _mix(slab, slab * 0.55, joints)
+    curb = torch.tensor([0.70, 0.69, 0.66]) * (1 + grain + blotch)[:, None]
+    return torch.where(top[:, None], slab, curb)
+
+
+def metal_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor) -> Tensor:
+    """Painted metal with rust streaks and bands (poles, lamp arms); (n, 3)."""
+    bank = world.noise
+    grain = fbm(bank, s * 3.0 + 1.0, z + 40.0, f, 0.01, _G_FINE)
+    bands = stripes(z, 1.3, 0.08, f)
+    return _mix(colour * (1 + grain[:, None]), colour * 0.5, bands)
+
+
+def _light(world: World, n: Tensor) -> Tensor:
+    sun = torch.from_numpy(world.sun).float()
+    return 0.55 + 0.1 * n[:, 2] + 0.45 * (n @ sun).clamp_min(0)
+
+
+def shade(world: World, t: Tensor, pid: Tensor, dirs: Tensor, pixel_angle: Tensor, valid: Tensor,
+          origin: np.ndarray, time_s: float) -> Tensor:
+    """Linear RGB in [0, 1] of every ray (same leading shape as `t`) from the hits of `trace`."""
+    shape = t.shape
+    t, pid, d = t.reshape(-1), pid.reshape(-1), dirs.reshape(-1, 3)
+    pa, valid = pixel_angle.reshape(-1), valid.reshape(-1)
+    out = sky(d)
+    out[~valid] = 0.0
+
+    # ground
+    g = torch.nonzero(pid == 0).flatten()
+    if g.numel():
+        tg, dg = t[g], d[g]
+        x = float(origin[0]) + tg * dg[:, 0]
+        y = float(origin[1]) + tg * dg[:, 1]
+        f = _footprint(tg, pa[g], dg[:, 2])
+        n = torch.tensor([[0.0, 0.0, 1.0]]).expand(g.numel(), 3)
+        out[g] = ground_albedo(world, x, y, f) * _light(world, n)[:, None]
+
+    # boxes
+    b = torch.nonzero((pid >= 1) & (pid <= world.n_boxes)).flatten()
+    if b.numel():
+        out[b] = _shade_boxes(world, t[b], pid[b] - 1, d[b], pa[b], origin, time_s)
+
+    # poles
+    p = torch.nonzero(pid > world.n_boxes).flatten()
+    if p.numel():
+        m = (pid[p] - 1 - world.n_boxes).long()
+        tp, dp = t[p], d[p]
+        cxy = torch.from_numpy(world.pole_xy - origin[:2]).float()[m]
+        hx, hy = tp * dp[:, 0] - cxy[:, 0], tp * dp[:, 1] - cxy[:, 1]
+        r = torch.from_numpy(world.pole_radius).float()[m]
+        n = torch.stack([hx / r, hy / r, torch.zeros_like(hx)], dim=1)
+        z = float(origin[2]) + tp * dp[:, 2]
+        s = torch.atan2(hy, hx) * r
+        f = _footprint(tp, pa[p], (n * dp).sum(1))
+        colour = torch.from_numpy(world.pole_color).float()[m]
+        out[p] = metal_albedo(world, s, z, f, colour) * _light(world, n)[:, None]
+    return out.reshape(*shape, 3)
+
+
+def _shade_boxes(world: World, t: Tensor, j: Tensor, d: Tensor, pa: Tensor, origin: np.ndarray,
+                 time_s: float) -> Tensor:
+    j = j.long()
+    centers = world.box_centers(time_s)
+    yaw = world.box_yaw
+    c, s_ = np.cos(-yaw), np.sin(-yaw)
+    rel = origin[None, :] - centers
+    o_loc = np.stack([c * rel[:, 0] - s_ * rel[:, 1], s_ * rel[:, 0] + c * rel[:, 1], rel[:, 2]], axis=1)
+    o_loc_t = torch.from_numpy(o_loc).float()[j]
+    cj = torch.from_numpy(c).float()[j]
+    sj = torch.from_numpy(s_).float()[j]
+    dl = torch.stack([cj * d[:, 0] - sj * d[:, 1], sj * d[:, 0] + cj * d[:, 1], d[:, 2]], dim=1)
+    p = o_loc_t + t[:, None] * dl
+    half = torch.from_numpy(world.box_half).float()[j]
+    face = (p.abs() - half).argmax(dim=1)
+    sign = torch.sign(p.gather(1, face[:, None]))[:, 0]
+    n_loc = torch.zeros_like(p).scatter_(1, face[:, None], sign[:, None])
+    n = torch.stack([cj * n_loc[:, 0] + sj * n_loc[:, 1], -sj * n_loc[:, 0] + cj * n_loc[:, 1], n_loc[:, 2]], dim=1)
+    f = _footprint(t, pa, (n * d).sum(1))
+    off = torch.from_numpy(world.box_tex_offset).float()[j]
+    cz = torch.from_numpy(centers[:, 2]).float()[j]
+    zw = p[:, 2] + cz  # height above the ground
+    top = face == 2
+    s_coord = torch.where(face == 0, p[:, 1], p[:, 0]) + off[:, 0]
+    v_coord = torch.where(top, p[:, 1] + off[:, 1], zw)
+    material = torch.from_numpy(world.box_material)[j]
+    colour = torch.from_numpy(world.box_color).float()[j]
+    albedo = torch.empty_like(p)
+
+    sel = torch.nonzero(material == FACADE).flatten()
+    if sel.numel():
+        params = torch.from_numpy(world.box_params).float()[j[sel]]
+        a = facade_albedo(world, s_coord[sel], v_coord[sel], f[sel], colour[sel], params)
+        roof = _ROOF * (1 + fbm(world.noise, s_coord[sel], v_coord[sel], f[sel], 0.02, _G_FINE)[:, None])
+        albedo[sel] = torch.where(top[sel][:, None], roof, a)
+    sel = torch.nonzero((material == CAR_BODY) | (material == CAR_GLASS) | (material == TYRE)).flatten()
+    if sel.numel():
+        albedo[sel] = car_albedo(world, s_coord[sel], v_coord[sel], f[sel], colour[sel], material[sel], top[sel])
+    sel = torch.nonzero(material == SIDEWALK).flatten()
+    if sel.numel():
+        # slabs are anchored to the world so joints run on across segments
+        cx = torch.from_numpy(centers[:, 0]).float()[j[sel]]
+        cy = torch.from_numpy(centers[:, 1]).float()[j[sel]]
+        xs = torch.where(top[sel], p[sel, 0] + cx, s_coord[sel] + cx)
+        ys = torch.where(top[sel], p[sel, 1] + cy, zw[sel])
+        albedo[sel] = sidewalk_albedo(world, xs, ys, f[sel], top[sel])
+    sel = torch.nonzero(material == METAL).flatten()
+    if sel.numel():
+        albedo[sel] = metal_albedo(world, s_coord[sel], v_coord[sel], f[sel], colour[sel])
+    return albedo * _light(world, n)[:, None]
