@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -264,10 +265,18 @@ def _missing_file(root: Path) -> str:
     return f"sample_data.json: [token={row['token']}].filename: points at a missing file"
 
 
+@pytest.fixture(scope="module")
+def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("nuscenes_small")
+    write_tables(root, {"scene-0061": 3}, sweeps_between=0)
+    assert main(["validate", f"{root}::scene-0061"]) == 0
+    return root
+
+
 @pytest.mark.parametrize("defect", [_truncate, _missing_camera, _missing_sensor, _missing_file])
-def test_defects_are_one_line_exit_2(defect, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    write_tables(tmp_path, {"scene-0061": 3}, sweeps_between=0)
-    assert main(["validate", f"{tmp_path}::scene-0061"]) == 0
+def test_defects_are_one_line_exit_2(defect, small_set: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    tmp_path = tmp_path / "copy"
+    shutil.copytree(small_set, tmp_path)
     capsys.readouterr()
     expected = defect(tmp_path)
     assert main(["validate", f"{tmp_path}::scene-0061"]) == 2

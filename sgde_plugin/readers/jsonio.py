@@ -23,8 +23,11 @@ def read_json(path: Path) -> Any:
             return json.load(f)
     except FileNotFoundError:
         raise InputError(path, None, "file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, None, f"bad JSON ({exc})") from None
+    except json.JSONDecodeError as exc:
+        what = "truncated JSON" if exc.pos >= len(exc.doc.rstrip()) else "bad JSON"
+        raise InputError(path, None, f"{what} ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(path, None, f"not UTF-8 text ({exc.reason})") from None
 
 
 def iter_json_array(
