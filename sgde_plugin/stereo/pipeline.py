@@ -1,0 +1,385 @@
+"""Depth prior of a whole rig frame (SGDE step 3): rectify every adjacent pair, match, back-project, fuse.
+
+`PriorBuilder(rig, config)` does all per-rig work once (rectified geometry, remap maps, backward
+maps); `.build(images, masks)` then turns one frame's images into one `PriorMap` per camera.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..rig import Rig
+from .backproject import BackProjection, backprojection, fuse_priors
+from .matchers import Matcher, SGBMMatcher, load_learned_matcher
+from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair
+from .virtual import virtual_pinholes
+
+PRIOR_ALGO_VERSION = "1"
+
+MATCHERS = ("sgbm", "torch", "onnx")
+FISHEYE_PATHS = ("direct", "virtual")
+
+
+@dataclass(frozen=True)
+class PriorConfig:
+    """Everything that changes the prior: matcher, matching scale, depth range, filters, geometry."""
+
+    matcher: str = "sgbm"  # "sgbm", or a learned matcher from matcher_path: "torch" / "onnx"
+    matcher_path: str | None = None
+    matcher_arch: str | None = None  # "pkg.module:factory" for a torch state dict
+    matcher_input_scale: float = 1.0  # learned matchers: multiply [0, 255] pixels by this
+    matcher_flow_output: bool = False  # learned matchers: output is a flow (disparity = -x)
+    scale: float = 0.5  # matching resolution relative to the source cameras
+    min_depth: float = 1.5
+    max_depth: float = 80.0
+    block_size: int = 5
+    p1: int = 8
+    p2: int = 32
+    uniqueness: int = 10
+    speckle_window: int = 100
+    speckle_range: int = 2
+    lr_max_diff: float = 1.0  # left-right consistency, rectified pixels
+    border_px: int = 2  # matches this far (+ half a block) from an image border are dropped
+    refine_iterations: int = 2  # sub-pixel Gauss-Newton steps after matching (0 = off)
+    min_zncc: float = 0.5  # photometric check of each match (7x7 ZNCC after the shift)
+    color: bool = False  # match RGB instead of grey
+    margin_px: int = 8
+    max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
+    max_elevation_deg: float = 50.0
+    fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
+
+    def __post_init__(self) -> None:
+        if self.matcher not in MATCHERS:
+            raise InputError(None, "matcher", f"unknown matcher {self.matcher!r} (expected {', '.join(MATCHERS)})")
+        if self.matcher != "sgbm" and not self.matcher_path:
+            raise InputError(None, "matcher_path", f"matcher {self.matcher!r} needs a model file")
+        if self.fisheye not in FISHEYE_PATHS:
+            raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
+        if not 0 < self.scale <= 2:
+            raise InputError(None, "scale", "must be in (0, 2]")
+        if not 0 < self.min_depth < self.max_depth:
+            raise InputError(None, "min_depth/max_depth", "need 0 < min_depth < max_depth")
+
+    def to_dict(self) -> dict[str, Any]:
+        """All settings plus the algorithm version and, for a learned matcher, the model file's hash."""
+        d: dict[str, Any] = asdict(self)
+        d["algo_version"] = PRIOR_ALGO_VERSION
+        if self.matcher == "sgbm":
+            for key in ("matcher_path", "matcher_arch", "matcher_input_scale", "matcher_flow_output"):
+                d.pop(key)
+        else:
+            path = Path(self.matcher_path or "")
+            d["matcher_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+            for key in ("block_size", "p1", "p2", "uniqueness", "speckle_window", "speckle_range"):
+                d.pop(key)
+        return d
+
+    def make_matcher(self) -> Matcher:
+        """The configured matcher."""
+        if self.matcher == "sgbm":
+            return SGBMMatcher(
+                block_size=self.block_size, p1=self.p1, p2=self.p2, uniqueness=self.uniqueness,
+                speckle_window=self.speckle_window, speckle_range=self.speckle_range,
+            )
+        return load_learned_matcher(
+            str(self.matcher_path), self.matcher_arch, self.matcher_input_scale, self.matcher_flow_output
+        )
+
+
+@dataclass
+class PriorMap:
+    """Depth prior of one camera: depth float32 (H, W) metres (0 = none), confidence float32 in [0, 1]."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Bool (H, W): where the prior has a value."""
+        return self.depth > 0
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> PriorMap:
+        """A map without any value."""
+        return cls(np.zeros((height, width), np.float32), np.zeros((height, width), np.float32))
+
+
+@dataclass(frozen=True, eq=False)
+class _Side:
+    """How one side's rectified image is made from an original camera's image."""
+
+    camera: str  # original camera name
+    pre: WarpMaps | None  # original fisheye -> virtual pinhole (fisheye="virtual" only)
+    rect: WarpMaps  # (virtual or original) source -> rectified canvas
+    back: BackProjection  # original camera -> rectified canvas (backward map)
+
+    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        """Original image -> rectified canvas."""
+        if self.pre is not None:
+            image = self.pre.warp(image, interpolation)
+        return self.rect.warp(image, interpolation)
+
+    def canvas_valid(self, mask: np.ndarray | None) -> np.ndarray:
+        """Bool canvas mask: the source sees the pixel (and the ego mask allows it)."""
+        valid = self.rect.valid.copy()
+        if self.pre is not None:
+            valid &= self.rect.warp(self.pre.valid.astype(np.uint8), cv2.INTER_NEAREST) > 0
+        if mask is not None:
+            valid &= self.warp(mask.astype(np.uint8), cv2.INTER_NEAREST) > 0
+        return valid
+
+
+@dataclass(frozen=True, eq=False)
+class PairPlan:
+    """Everything precomputed for one adjacent pair."""
+
+    pair: RectifiedPair
+    left: _Side
+    right: _Side
+
+
+def _facing_half(fisheye: Camera, other: Camera) -> Camera:
+    """The virtual pinhole half of `fisheye` that faces `other`."""
+    halves = virtual_pinholes(fisheye)
+    axis = other.sensor_to_ego[:3, 2]
+    return max(halves, key=lambda h: float(h.sensor_to_ego[:3, 2] @ axis))
+
+
+def lr_check(
+    disp_a: np.ndarray, conf_a: np.ndarray, disp_b: np.ndarray, conf_b: np.ndarray, sign: int, max_diff: float
+) -> np.ndarray:
+    """Confidence of `disp_a` after the left-right check against `disp_b` (the other reference).
+
+    For a left reference (sign=-1) the match of column x is x - d; for a right reference (+1), x + d.
+    The check passes when the other map, at the matched column, agrees within `max_diff` pixels;
+    the confidence then falls off as a Gaussian of the disagreement.
+    """
+    h, w = disp_a.shape
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    x = np.rint(cols + sign * disp_a).astype(np.intp)
+    inside = (x >= 0) & (x < w)
+    xc = np.clip(x, 0, w - 1)
+    other = np.take_along_axis(disp_b, xc, axis=1)
+    other_c = np.take_along_axis(conf_b, xc, axis=1)
+    diff = np.abs(disp_a - other)
+    ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
+    return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32)
+
+
+def _shift_maps(disp: np.ndarray, sign: int) -> tuple[np.ndarray, np.ndarray]:
+    h, w = disp.shape
+    map_x = np.arange(w, dtype=np.float32)[None, :] + sign * disp.astype(np.float32)
+    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    return map_x, map_y
+
+
+def _grey_float(image: np.ndarray) -> np.ndarray:
+    return image.astype(np.float32) if image.ndim == 2 else image.astype(np.float32).mean(axis=2)
+
+
+def refine_disparity(
+    image_a: np.ndarray, image_b: np.ndarray, disp_a: np.ndarray, valid: np.ndarray, sign: int,
+    iterations: int = 2, window: int = 5, max_step: float = 0.5,
+) -> np.ndarray:
+    """Sub-pixel refinement of `disp_a` by Gauss-Newton steps on the windowed photometric error.
+
+    SGBM's parabola fit pulls disparities towards integers ("pixel locking", up to 0.15 px); a
+    few offset-compensated Lucas-Kanade steps along the row, with `image_b` warped by each pixel's
+    own disparity (so slanted surfaces stay aligned), remove that bias.
+    """
+    a, b = _grey_float(image_a), _grey_float(image_b)
+    grad = cv2.filter2D(b, cv2.CV_32F, np.array([[-0.5, 0.0, 0.5]], np.float32), borderType=cv2.BORDER_REPLICATE)
+    d = disp_a.astype(np.float32).copy()
+    box = (window, window)
+    for _ in range(iterations):
+        map_x, map_y = _shift_maps(d, sign)
+        bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        j = sign * cv2.remap(grad, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        e = a - bw
+        mj, me = cv2.blur(j, box), cv2.blur(e, box)
+        num = cv2.blur(j * e, box) - mj * me
+        den = cv2.blur(j * j, box) - mj * mj
+        step = np.clip(num / np.maximum(den, 1e-3), -max_step, max_step)
+        ok = valid & (den > 1.0)
+        d[ok] += step[ok]
+    return np.where(valid, d, 0).astype(np.float32)
+
+
+def zncc(
+    image_a: np.ndarray, image_b: np.ndarray, disp_a: np.ndarray, sign: int, window: int = 7, min_std: float = 2.0
+) -> np.ndarray:
+    """Zero-mean normalised cross-correlation between `image_a` and `image_b` warped by `disp_a`.
+
+    `image_b` is sampled at column x + sign * d (bilinear), so a slanted surface is compared
+    after its own per-pixel shift; -1 where either patch is flat (std below `min_std` grey levels).
+    """
+    a, b = _grey_float(image_a), _grey_float(image_b)
+    map_x, map_y = _shift_maps(disp_a, sign)
+    bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    box = (window, window)
+    ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
+    va = cv2.blur(a * a, box) - ma * ma
+    vb = cv2.blur(bw * bw, box) - mb * mb
+    cov = cv2.blur(a * bw, box) - ma * mb
+    flat = (va < min_std**2) | (vb < min_std**2)
+    out = cov / np.sqrt(np.maximum(va * vb, 1e-6))
+    out[flat] = -1.0
+    return out
+
+
+class PriorBuilder:
+    """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
+
+    def __init__(self, rig: Rig, config: PriorConfig | None = None):
+        self.rig = rig
+        self.config = config or PriorConfig()
+        self.matcher: Matcher = self.config.make_matcher()
+        self.last_timings: dict[str, float] = {}
+        self.plans: list[PairPlan] = []
+        self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
+        rays = {}
+        cfg = self.config
+        for a, b in rig.pairs:
+            cam_a, cam_b = rig.camera(a), rig.camera(b)
+            src_a, src_b = cam_a, cam_b
+            if cfg.fisheye == "virtual":
+                if cam_a.intrinsics.depth_is_range:
+                    src_a = _facing_half(cam_a, cam_b)
+                if cam_b.intrinsics.depth_is_range:
+                    src_b = _facing_half(cam_b, cam_a)
+            pair = rectify_pair(
+                src_a, src_b, cfg.scale, cfg.min_depth, cfg.margin_px, cfg.max_azimuth_deg, cfg.max_elevation_deg
+            )
+            if pair is None:
+                continue
+            sides = []
+            for src, rect in ((pair.left, pair.rect_left), (pair.right, pair.rect_right)):
+                orig = cam_a if src is src_a else cam_b
+                if orig.name not in rays:
+                    rays[orig.name] = orig.intrinsics.ray_grid()
+                pre = None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig))
+                sides.append(_Side(
+                    camera=orig.name,
+                    pre=pre,
+                    rect=WarpMaps.between(src, rect, default_rim_px(src)),
+                    back=backprojection(orig, rect, pair.baseline_m, *rays[orig.name]),
+                ))
+            self.plans.append(PairPlan(pair, sides[0], sides[1]))
+
+    def _prepare(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Check sizes and convert to the matching colour space (grey unless `color`)."""
+        out = {}
+        used = {s.camera for p in self.plans for s in (p.left, p.right)}
+        for name in used:
+            if name not in images:
+                raise InputError(None, f"images[{name}]", "missing")
+            img = np.asarray(images[name])
+            cam = self.rig.camera(name)
+            if img.shape[:2] != (cam.height, cam.width):
+                raise InputError(
+                    None, f"images[{name}]", f"is {img.shape[1]}x{img.shape[0]}, camera is {cam.width}x{cam.height}"
+                )
+            if img.dtype != np.uint8:
+                raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
+            if not self.config.color and img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+            out[name] = img
+        return out
+
+    def match_pair(
+        self, plan: PairPlan, left: np.ndarray, right: np.ndarray, valid_l: np.ndarray, valid_r: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """Left- and right-referenced disparity and confidence on the canvas, and the seconds spent matching."""
+        D = plan.pair.max_disparity
+        x1 = plan.pair.core_x[1]
+        h, w = left.shape[:2]
+        t0 = time.perf_counter()
+        dl, cl = self.matcher.match(left[:, :x1], right[:, :x1], D)
+        dr_f, cr_f = self.matcher.match(
+            np.ascontiguousarray(right[:, D:][:, ::-1]), np.ascontiguousarray(left[:, D:][:, ::-1]), D
+        )
+        t_match = time.perf_counter() - t0
+        disp_l = np.zeros((h, w), np.float32)
+        conf_l = np.zeros((h, w), np.float32)
+        disp_r = np.zeros((h, w), np.float32)
+        conf_r = np.zeros((h, w), np.float32)
+        disp_l[:, :x1], conf_l[:, :x1] = dl, cl
+        disp_r[:, D:], conf_r[:, D:] = dr_f[:, ::-1], cr_f[:, ::-1]
+        # a match must start and land on pixels the cameras see (eroded against the black border)
+        r = self.config.block_size // 2 + self.config.border_px
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        vl = cv2.erode(valid_l.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        vr = cv2.erode(valid_r.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+        conf_l[~vl] = 0
+        conf_r[~vr] = 0
+        if self.config.refine_iterations > 0:
+            it = self.config.refine_iterations
+            disp_l = refine_disparity(left, right, disp_l, conf_l > 0, -1, it)
+            disp_r = refine_disparity(right, left, disp_r, conf_r > 0, +1, it)
+        conf_l2 = lr_check(disp_l, conf_l, disp_r, conf_r, -1, self.config.lr_max_diff)
+        conf_r2 = lr_check(disp_r, conf_r, disp_l, conf_l, +1, self.config.lr_max_diff)
+        # photometric check after the per-pixel shift: catches consistent but wrong matches, e.g. of
+        # points whose true match has left the other image
+        t = self.config.min_zncc
+        for conf, ncc in ((conf_l2, zncc(left, right, disp_l, -1)), (conf_r2, zncc(right, left, disp_r, +1))):
+            conf *= np.clip((ncc - t) / (1 - t), 0, 1)
+        # small disparities (far points) give uncertain depth
+        conf_l2 *= disp_l / (disp_l + 2.0)
+        conf_r2 *= disp_r / (disp_r + 2.0)
+        return disp_l, conf_l2, disp_r, conf_r2, t_match
+
+    def build(
+        self, images: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray] | None = None
+    ) -> dict[str, PriorMap]:
+        """Priors of all cameras for one frame; `masks` (True = use) default to the rig's static masks."""
+        t_start = time.perf_counter()
+        cfg = self.config
+        masks = dict(self._static_masks) if masks is None else dict(masks)
+        grey = self._prepare(images)
+        per_camera: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in self.rig.camera_names}
+        t_match = t_warp = t_back = 0.0
+        for plan in self.plans:
+            t0 = time.perf_counter()
+            left = plan.left.warp(grey[plan.left.camera])
+            right = plan.right.warp(grey[plan.right.camera])
+            valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
+            valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
+            t_warp += time.perf_counter() - t0
+            disp_l, conf_l, disp_r, conf_r, tm = self.match_pair(plan, left, right, valid_l, valid_r)
+            t_match += tm
+            t0 = time.perf_counter()
+            per_camera[plan.left.camera].append(plan.left.back.depth(disp_l, conf_l, cfg.min_depth, cfg.max_depth))
+            per_camera[plan.right.camera].append(plan.right.back.depth(disp_r, conf_r, cfg.min_depth, cfg.max_depth))
+            t_back += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        out: dict[str, PriorMap] = {}
+        for cam in self.rig.cameras:
+            maps = per_camera[cam.name]
+            if not maps:
+                out[cam.name] = PriorMap.empty(cam.height, cam.width)
+                continue
+            depth, conf = fuse_priors(maps)
+            mask = masks.get(cam.name)
+            if mask is not None:
+                depth[~mask] = 0
+            conf[depth <= 0] = 0
+            depth[conf <= 0] = 0
+            out[cam.name] = PriorMap(depth, conf)
+        t_back += time.perf_counter() - t0
+        self.last_timings = {
+            "warp": t_warp, "match": t_match, "backproject": t_back, "total": time.perf_counter() - t_start,
+        }
+        return out
+
+
+__all__ = ["PRIOR_ALGO_VERSION", "PairPlan", "PriorBuilder", "PriorConfig", "PriorMap", "lr_check"]
