@@ -20,7 +20,7 @@ import re
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -75,6 +75,15 @@ class BuildReport:
     seconds: float
     workers: int
     engine: str
+    frame_seconds: list[float] = field(default_factory=list)  # when each built frame was done, from start
+
+    def steady_rate(self) -> float:
+        """Frames per second once every worker has finished its first frame (start-up excluded)."""
+        t = sorted(self.frame_seconds)
+        k = max(1, self.workers)
+        if len(t) <= k:
+            return len(t) / self.seconds if self.seconds > 0 else 0.0
+        return (len(t) - k) / max(t[-1] - t[k - 1], 1e-9)
 
     def line(self) -> str:
         """One-line summary for the command line."""
@@ -86,13 +95,17 @@ class BuildReport:
         )
 
 
+def sanitize_scene_name(name: str) -> str:
+    """A name made usable as a zarr group name (letters, digits, '.', '_', '-')."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).lstrip("._") or "scene"
+
+
 def default_scene_name(rig: Any) -> str:
     """The rig's scene name: rig.json's 'scene' key, else its folder's name, else 'scene'."""
     name = rig.extra.get("scene") if isinstance(getattr(rig, "extra", None), Mapping) else None
     if not isinstance(name, str) or not name:
         name = Path(rig.root).resolve().name if getattr(rig, "root", None) is not None else "scene"
-    name = re.sub(r"[^A-Za-z0-9._-]+", "_", name).lstrip("._") or "scene"
-    return name
+    return sanitize_scene_name(name)
 
 
 def limit_threads(n: int) -> dict[str, int]:
@@ -272,6 +285,7 @@ def build_cache(
     tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
     workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
     built, pixels = 0, 0
+    stamps: list[float] = []
     bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
 
     def on_done(result: tuple[int, int, tuple | None]) -> None:
@@ -281,6 +295,7 @@ def build_cache(
             raise InputError(*error)
         built += 1
         pixels += count
+        stamps.append(time.perf_counter() - start)
         bar.update(1)
 
     used = 0
@@ -303,6 +318,7 @@ def build_cache(
         seconds=time.perf_counter() - start,
         workers=used,
         engine=engine,
+        frame_seconds=stamps,
     )
 
 
@@ -322,6 +338,7 @@ __all__ = [
     "build_cache",
     "default_scene_name",
     "default_workers",
+    "sanitize_scene_name",
     "limit_threads",
     "run_frame",
 ]
