@@ -78,8 +78,8 @@ def _read_check(array: Any, index: tuple[int, ...]) -> tuple[np.ndarray | None, 
     except Exception as exc:  # noqa: BLE001 - any decoding failure is a finding, not a crash
         text = str(exc).split("\n")[0]
         if "checksum" in text.lower():
-            text = "checksum mismatch (corrupted or truncated)"
-        return None, f"{type(exc).__name__}: {text}"
+            return None, "checksum mismatch (corrupted or truncated)"
+        return None, f"unreadable ({type(exc).__name__}: {text})"
 
 
 def verify_cache(location: Any, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:

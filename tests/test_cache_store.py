@@ -1,0 +1,233 @@
+"""Prior cache store: round trips, fingerprints, resume, extension, fsspec, verify, info, workers.
+
+Runtime ~12 s on 2 cores (most of it the 2-process build; +~8 s for the Ray build when ray is
+installed).
+"""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sgde_plugin.cache.build import build_cache
+from sgde_plugin.cache.fingerprint import fingerprint, fingerprint_parts
+from sgde_plugin.cache.inspect import cache_info, verify_cache
+from sgde_plugin.cache.store import PriorCache, SceneWriter, prepare_scene, read_key, store_keys
+from sgde_plugin.cache.synthetic import SyntheticPriorCompute
+from sgde_plugin.cli import main as cli_main
+from sgde_plugin.errors import InputError
+from sgde_plugin.rig import rig_from_dict
+
+CONFIG = {"matcher": "stand-in", "scale": 0.5}
+ALGO = "test-1"
+
+
+def tiny_rig(frames: int = 4, shift_m: float = 0.0):
+    """Three pinholes (one smaller than the others) in a ring, `frames` frames."""
+    cams = []
+    for i, (name, w, h) in enumerate([("A", 64, 40), ("B", 64, 40), ("C", 48, 32)]):
+        yaw = 2 * np.pi * i / 3
+        T = np.eye(4)
+        T[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        T[0, 3] = shift_m if name == "A" else 0.0
+        K = [[40.0, 0, (w - 1) / 2], [0, 40.0, (h - 1) / 2], [0, 0, 1]]
+        cams.append({"name": name, "model": "pinhole", "width": w, "height": h, "K": K, "dist": None,
+                     "sensor_to_ego": T.tolist()})
+    doc = {"format": "sgde-rig/1", "cameras": cams, "ring": ["A", "B", "C"],
+           "frames": [{"id": f"{i:06d}", "timestamp_us": 1000 * i} for i in range(frames)]}
+    return rig_from_dict(doc)
+
+
+def build(rig, out, **kw):
+    """Build with the synthetic stand-in compute."""
+    kw.setdefault("compute", SyntheticPriorCompute(rig))
+    return build_cache(rig, out, kw.pop("config", CONFIG), algo_version=ALGO, show_progress=False, **kw)
+
+
+def content(location) -> dict[str, bytes]:
+    """Every key of a store with its bytes (temporary files excluded)."""
+    return {k: read_key(location, k) for k in store_keys(location) if not k.endswith(".partial")}
+
+
+def test_round_trip_matches_compute_within_float16(tmp_path):
+    rig = tiny_rig(3)
+    report = build(rig, tmp_path / "c")
+    assert (report.frames_built, report.frames_already_done, report.frames_total) == (3, 0, 3)
+    cache = PriorCache(tmp_path / "c")
+    assert cache.frames() == ["000000", "000001", "000002"]
+    assert cache.cameras() == ["A", "B", "C"]
+    assert cache.fingerprint == fingerprint(rig, CONFIG, ALGO)
+    compute = SyntheticPriorCompute(rig)
+    for fid in cache.frames():
+        expected = compute(fid)
+        for cam in cache.cameras():
+            d_ref, c_ref = expected[cam]
+            depth, valid = cache.get(fid, cam)
+            assert depth.dtype == np.float32 and valid.dtype == bool
+            assert depth.shape == d_ref.shape  # camera C is cropped back from the padded array
+            np.testing.assert_array_equal(valid, d_ref > 0)
+            np.testing.assert_allclose(depth, d_ref, rtol=2.0**-11, atol=0)
+            assert np.all(depth[~valid] == 0)
+            conf = cache.get_confidence(fid, cam)
+            np.testing.assert_allclose(conf, np.where(d_ref > 0, c_ref, 0), atol=0.5 / 255 + 1e-6)
+
+
+def test_resized_get_is_min_pooled(tmp_path):
+    rig = tiny_rig(1)
+    build(rig, tmp_path / "c")
+    cache = PriorCache(tmp_path / "c")
+    full, _ = cache.get("000000", "A")
+    half, valid = cache.get("000000", "A", size=(20, 32))
+    blocks = np.where(full > 0, full, np.inf).reshape(20, 2, 32, 2).min(axis=(1, 3))
+    np.testing.assert_array_equal(half, np.where(np.isfinite(blocks), blocks, 0))
+    np.testing.assert_array_equal(valid, np.isfinite(blocks))
+
+
+def test_other_configuration_or_calibration_is_refused(tmp_path):
+    rig = tiny_rig(2)
+    out = tmp_path / "c"
+    build(rig, out)
+    with pytest.raises(InputError, match=r"other prior settings \(scale 0.5 -> 0.25\)"):
+        build(rig, out, config={**CONFIG, "scale": 0.25})
+    with pytest.raises(InputError, match="another calibration"):
+        build(tiny_rig(2, shift_m=0.01), out)
+    with pytest.raises(InputError, match="another calibration"):
+        PriorCache(out, rig=tiny_rig(2, shift_m=0.01))
+    with pytest.raises(InputError, match="other prior settings"):
+        PriorCache(out, config={**CONFIG, "matcher": "x"}, algo_version=ALGO)
+    with pytest.raises(InputError, match="algo_version 'test-1' -> 'test-2'"):
+        PriorCache(out, config=CONFIG, algo_version="test-2")
+    PriorCache(out, rig=rig, config=CONFIG, algo_version=ALGO)  # the right inputs open fine
+    with pytest.raises(InputError, match="fingerprint"):
+        PriorCache(out, expect="0" * 20)
+
+
+def test_fingerprint_covers_calibration_and_config_not_frames(tmp_path):
+    rig = tiny_rig(2)
+    parts = fingerprint_parts(rig, CONFIG, ALGO)
+    assert parts == fingerprint_parts(tiny_rig(5), CONFIG, ALGO)  # frames are content, not inputs
+    moved = fingerprint_parts(tiny_rig(2, shift_m=1e-9), CONFIG, ALGO)
+    assert moved["rig"] != parts["rig"] and moved["config"] == parts["config"]
+    other = fingerprint_parts(rig, {**CONFIG, "scale": 0.25}, ALGO)
+    assert other["rig"] == parts["rig"] and other["config"] != parts["config"]
+    assert fingerprint_parts(rig, CONFIG, "test-2")["config"] != parts["config"]
+    assert len({parts["fingerprint"], moved["fingerprint"], other["fingerprint"]}) == 3
+
+
+def test_readers_see_only_finished_frames_and_resume_overwrites_leftovers(tmp_path):
+    rig = tiny_rig(4)
+    out = str(tmp_path / "c")
+    parts = {**fingerprint_parts(rig, CONFIG, ALGO)}
+    from sgde_plugin.cache.fingerprint import config_document
+
+    parts["config_document"] = config_document(CONFIG, ALGO)
+    plan = prepare_scene(out, "s", rig, parts)
+    assert plan.pending == [0, 1, 2, 3]
+    compute, writer = SyntheticPriorCompute(rig), SceneWriter(out, "s")
+    for i in (0, 2):
+        writer.write_frame(i, compute(f"{i:06d}"))
+    # frame 1: a shard from an interrupted attempt (garbage) and a stray temporary file, no done marker
+    shard = Path(out) / "s" / "depth" / "c" / "1" / "0" / "0" / "0"
+    shard.parent.mkdir(parents=True, exist_ok=True)
+    shard.write_bytes(b"half a shard")
+    (shard.parent / "0.deadbeef.partial").write_bytes(b"x")
+    cache = PriorCache(out)
+    assert cache.frames() == ["000000", "000002"]
+    assert cache.frames(include_pending=True) == ["000000", "000001", "000002", "000003"]
+    with pytest.raises(KeyError, match="not built yet"):
+        cache.get("000001", "A")
+    report = build(rig, out, scene="s")
+    assert (report.frames_built, report.frames_already_done) == (2, 2)
+    assert not list(shard.parent.glob("*.partial"))
+    build(rig, tmp_path / "ref", scene="s")
+    assert content(out) == content(tmp_path / "ref")
+    assert cache.get("000001", "A")[1].any()  # an open reader sees frames finished since it opened
+
+
+def test_adding_frames_extends_the_scene(tmp_path):
+    build(tiny_rig(2), tmp_path / "c", scene="s")
+    report = build(tiny_rig(5), tmp_path / "c", scene="s")
+    assert (report.frames_built, report.frames_already_done, report.frames_total) == (3, 2, 5)
+    build(tiny_rig(5), tmp_path / "ref", scene="s")
+    assert content(tmp_path / "c") == content(tmp_path / "ref")
+
+
+def test_fsspec_memory_store_matches_local_folder(tmp_path):
+    pytest.importorskip("fsspec")
+    rig = tiny_rig(2)
+    url = f"memory://sgde-test-{uuid.uuid4().hex}/cache"
+    build(rig, url, scene="s")
+    build(rig, tmp_path / "c", scene="s")
+    assert content(url) == content(tmp_path / "c")
+    cache = PriorCache(url)
+    np.testing.assert_array_equal(cache.get("000001", "C")[0], PriorCache(tmp_path / "c").get("000001", "C")[0])
+    assert verify_cache(url)["ok"]
+
+
+def test_two_worker_processes_write_the_same_bytes(tmp_path):
+    rig = tiny_rig(6)
+    r2 = build(rig, tmp_path / "w2", scene="s", workers=2)
+    assert r2.workers == 2 and r2.frames_built == 6
+    build(rig, tmp_path / "w1", scene="s", workers=1)
+    assert content(tmp_path / "w2") == content(tmp_path / "w1")
+
+
+def test_ray_engine_writes_the_same_bytes(tmp_path):
+    pytest.importorskip("ray")
+    rig = tiny_rig(4)
+    report = build(rig, tmp_path / "ray", scene="s", workers=2, engine="ray")
+    assert report.frames_built == 4 and report.engine == "ray"
+    build(rig, tmp_path / "local", scene="s")
+    assert content(tmp_path / "ray") == content(tmp_path / "local")
+
+
+def _corrupt(path: Path, how: str) -> None:
+    data = bytearray(path.read_bytes())
+    if how == "flip":
+        data[len(data) // 4] ^= 0xFF  # inside the first camera's chunk
+        path.write_bytes(bytes(data))
+    else:
+        path.write_bytes(bytes(data[: len(data) - 40]))
+
+
+def test_verify_names_bad_chunks_by_scene_frame_camera(tmp_path, capsys):
+    rig = tiny_rig(4)
+    out = tmp_path / "c"
+    build(rig, out, scene="s")
+    assert verify_cache(out) == {"location": str(out), "ok": True, "chunks_read": 4 + 4 * 3 * 2,
+                                 "frames_checked": 4, "problems": []}
+    _corrupt(out / "s" / "depth" / "c" / "1" / "0" / "0" / "0", "flip")
+    _corrupt(out / "s" / "confidence" / "c" / "2" / "0" / "0" / "0", "truncate")
+    (out / "s" / "depth" / "c" / "3" / "0" / "0" / "0").unlink()
+    result = verify_cache(out)
+    found = {(p["scene"], p["frame"], p["camera"], p["array"]) for p in result["problems"]}
+    assert ("s", "000001", "A", "depth") in found
+    assert not any(f == "000001" and c in ("B", "C") and a == "depth" for _, f, c, a in found)
+    assert {("s", "000002", c, "confidence") for c in "ABC"} <= found  # a truncated shard loses its index
+    assert {("s", "000003", c, "depth") for c in "ABC"} <= found  # a vanished shard of a finished frame
+    assert not any(f == "000000" for _, f, _, _ in found)
+    assert cli_main(["cache", "verify", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert "s/000001/A: depth: checksum mismatch" in captured.out
+    assert "problem(s)" in captured.err
+
+
+def test_info_reports_frames_coverage_and_size(tmp_path, capsys):
+    rig = tiny_rig(3)
+    out = tmp_path / "c"
+    build(rig, out, scene="s")
+    info = cache_info(out)
+    compute = SyntheticPriorCompute(rig)
+    maps = [compute(f.id) for f in rig.frames]
+    (scene,) = info["scenes"]
+    assert (scene["frames_done"], scene["frames_total"], scene["cameras"]) == (3, 3, 3)
+    for row in info["cameras"]:
+        expected = np.mean([(m[row["camera"]][0] > 0).mean() for m in maps])
+        assert row["coverage"] == pytest.approx(expected, rel=1e-9)
+    assert info["bytes"] == sum(store_keys(out).values())
+    assert scene["fingerprint"] == fingerprint(rig, CONFIG, ALGO)
+    assert cli_main(["cache", "info", str(out)]) == 0
+    assert scene["fingerprint"] in capsys.readouterr().out
