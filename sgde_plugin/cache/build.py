@@ -17,6 +17,7 @@ import collections
 import multiprocessing
 import os
 import re
+import sys
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -118,8 +119,6 @@ def limit_threads(n: int) -> dict[str, int]:
         cv2.setNumThreads(n)
     except ImportError:  # pragma: no cover - cv2 is a dependency
         pass
-    import sys
-
     if "torch" in sys.modules:
         torch = sys.modules["torch"]
         previous["torch"] = torch.get_num_threads()
@@ -161,10 +160,13 @@ def _worker_frame(index: int, frame_id: str) -> tuple[int, int, tuple | None]:
 
 
 def _mp_context() -> multiprocessing.context.BaseContext:
+    # a fork server (single-threaded, unlike this process with zarr's I/O thread) that has imported
+    # the heavy modules this process already uses, so each worker starts by a cheap fork
     methods = multiprocessing.get_all_start_methods()
     if "forkserver" in methods:
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["sgde_plugin.cache.build"])
+        heavy = ("torch", "cv2", "sgde_plugin.rig", "sgde_plugin.stereo.pipeline")
+        ctx.set_forkserver_preload(["sgde_plugin.cache.build", *(m for m in heavy if m in sys.modules)])
         return ctx
     return multiprocessing.get_context("spawn")
 

@@ -105,12 +105,18 @@ def _nearest_indices(affine: np.ndarray, src_hw: tuple[int, int], out_hw: tuple[
     """For every output pixel, the nearest source pixel (rows, cols) and whether it is inside."""
     inv = np.linalg.inv(affine)
     h, w = out_hw
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    su = inv[0, 0] * u + inv[0, 1] * v + inv[0, 2]
-    sv = inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]
-    cols, rows = np.floor(su + 0.5).astype(np.int64), np.floor(sv + 0.5).astype(np.int64)
+    u = np.arange(w, dtype=np.float64)[None, :]
+    v = np.arange(h, dtype=np.float64)[:, None]
+    if inv[0, 1] == 0 and inv[1, 0] == 0:  # no rotation: rows and columns separate (the common resize)
+        cols = np.floor(inv[0, 0] * u + inv[0, 2] + 0.5).astype(np.int64)
+        rows = np.floor(inv[1, 1] * v + inv[1, 2] + 0.5).astype(np.int64)
+    else:
+        cols = np.floor(inv[0, 0] * u + inv[0, 1] * v + inv[0, 2] + 0.5).astype(np.int64)
+        rows = np.floor(inv[1, 0] * u + inv[1, 1] * v + inv[1, 2] + 0.5).astype(np.int64)
     inside = (cols >= 0) & (cols < src_hw[1]) & (rows >= 0) & (rows < src_hw[0])
-    return np.clip(rows, 0, src_hw[0] - 1), np.clip(cols, 0, src_hw[1] - 1), inside
+    rows = np.clip(rows, 0, src_hw[0] - 1)
+    cols = np.clip(cols, 0, src_hw[1] - 1)
+    return np.broadcast_to(rows, out_hw), np.broadcast_to(cols, out_hw), np.broadcast_to(inside, out_hw)
 
 
 def warp_depth(
