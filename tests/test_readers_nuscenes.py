@@ -299,3 +299,31 @@ def test_quaternion_and_intrinsic_defects(tmp_path: Path) -> None:
     path.write_text(json.dumps(rows))
     with pytest.raises(InputError, match=r"calibrated_sensor.json: \[token=\w+\]\.camera_intrinsic: is singular"):
         load_rig(tmp_path)
+
+
+def test_braces_in_strings_fall_back_to_the_exact_parser(tmp_path: Path) -> None:
+    truth = write_tables(tmp_path, {"scene-0061": 2}, sweeps_between=1, images=False)
+    fast = load_rig(tmp_path, sweeps=True)
+    path = tmp_path / VERSION / "sample_data.json"
+    rows = json.loads(path.read_text())
+    for r in rows:  # a '}' and a '{' inside strings defeat the fast splitter, not the reader
+        r["filename"] = r["filename"].replace("n015-", "n015-{x}-")
+    path.write_text(json.dumps(rows, indent=0))
+    exact = load_rig(tmp_path, sweeps=True)
+    assert exact == fast and len(exact.frames) == 3
+    assert "{x}" in str(exact.frames[0].images["CAM_FRONT"])
+    assert truth["scenes"]["scene-0061"]["keyframes"][0][0] == exact.frames[0].id
+
+
+@pytest.mark.parametrize("cut", [0.5, 0.999])
+def test_scan_table_truncation_both_paths(tmp_path: Path, cut: float) -> None:
+    from sgde_plugin.readers.jsonio import scan_table
+
+    rows = [{"token": f"{i:032x}", "note": "{}" if i == 3 else "x"} for i in range(50)]
+    for flat in (True, False):
+        text = json.dumps(rows if not flat else [{**r, "note": "x"} for r in rows], indent=0)
+        (tmp_path / "t.json").write_text(text)
+        assert len(scan_table(tmp_path / "t.json", lambda r: r["token"])) == 50
+        (tmp_path / "t.json").write_text(text[: int(len(text) * cut)])
+        with pytest.raises(InputError, match=r"t.json: element \d+: truncated"):
+            scan_table(tmp_path / "t.json", lambda r: r["token"])

@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import InputError
 
 _SEPARATOR = re.compile(r"\s*,?\s*")
+_BOUNDARY = re.compile(r"\}\s*,\s*\{")
 _CHUNK = 1 << 23  # characters read per step when streaming a table
 
 
@@ -87,6 +88,103 @@ def _read(f: Any, path: Path) -> str:
         raise InputError(path, None, f"not UTF-8 text ({exc.reason})") from None
 
 
+class _NotFlat(Exception):
+    """The fast splitter met something other than flat objects (a nested object, a '{' in a string)."""
+
+
+def _object_chunks(path: Path) -> Iterator[tuple[str, list[str]]]:
+    """(text, elements) of consecutive elements of a top-level array of FLAT objects, each text without its '}'.
+
+    Splits whole chunks at '}' in C, so it is only valid when no element holds a nested object or
+    a brace inside a string; a chunk where some '}' is not followed by `, {` (or the counts of
+    braces differ) raises `_NotFlat`, so the caller can use the exact parser.
+    """
+    try:
+        f = open(path, encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+    with f:
+        buf = _read(f, path)
+        eof = len(buf) < _CHUNK
+        start = _SEPARATOR.match(buf, 0).end()
+        if buf[start:start + 1] != "[":
+            raise _NotFlat
+        buf = buf[start + 1:]
+        index = 0
+        while True:
+            cut = buf.rfind("}")
+            if cut >= 0:
+                part, buf = buf[:cut], buf[cut + 1:]
+                pieces = part.split("}")
+                if part.count("{") != len(pieces) or len(_BOUNDARY.findall(part)) != len(pieces) - 1:
+                    raise _NotFlat  # a brace inside a string, or a nested object
+                index += len(pieces)
+                yield part, pieces
+            if eof:
+                rest = buf.strip().lstrip(",").strip()
+                if rest.startswith("]") and not rest[1:].strip():
+                    return
+                if rest.startswith("{"):
+                    raise InputError(path, f"element {index}", "truncated (the file ends inside it)")
+                raise InputError(path, f"element {index}", "truncated or bad JSON (no closing ']')")
+            more = _read(f, path)
+            eof = len(more) < _CHUNK
+            buf += more
+
+
+Select = tuple[re.Pattern, Callable[[str], bool]]
+
+
+def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] = ()) -> list:
+    """`reduce(row)` of every row of a JSON array of objects, keeping the results that are not None.
+
+    Streams the file. `select` lists (pattern, accept): a row whose text holds `pattern` (group 1 =
+    a value) with `accept(value)` False is one that `reduce` would drop, so it is never parsed (such
+    rows are checked for structure only). Falls back to the exact streaming parser when the rows are
+    not flat objects.
+    """
+    out = []
+    try:
+        index = 0
+        for part, pieces in _object_chunks(path):
+            keep = _selected(part, pieces, select)
+            for i in (i for i, k in enumerate(keep) if k):
+                piece = pieces[i]
+                text = piece[piece.index("{"):] + "}"
+                try:
+                    row = json.loads(text)
+                except json.JSONDecodeError as exc:
+                    raise InputError(path, f"element {index + i}", f"bad JSON ({exc.msg})") from None
+                result = reduce(row)
+                if result is not None:
+                    out.append(result)
+            index += len(pieces)
+        return out
+    except _NotFlat:
+        pass
+    out = []
+    for index, row in enumerate(iter_json_array(path)):
+        if not isinstance(row, dict):
+            raise InputError(path, f"element {index}", "not an object")
+        result = reduce(row)
+        if result is not None:
+            out.append(result)
+    return out
+
+
+def _selected(part: str, pieces: list[str], select: list[Select]) -> list[bool]:
+    """Which rows may be kept: one `findall` per pattern over the whole chunk when each row holds it once."""
+    keep = [True] * len(pieces)
+    if not select:
+        return keep
+    for pattern, accept in select:
+        values = pattern.findall(part)
+        if len(values) != len(pieces):  # not exactly once per row: look row by row
+            values = [m.group(1) if (m := pattern.search(p)) else None for p in pieces]
+        keep = [k and (v is None or accept(v)) for k, v in zip(keep, values)]
+    return keep
+
+
 # --- field access with errors that name file and key ------------------------------------------
 def get(row: dict, key: str, file: Path | str | None, where: str, kinds: type | tuple[type, ...] | None = None,
         alt: str | None = None, default: Any = ...) -> Any:
@@ -117,4 +215,4 @@ def number_list(row: dict, key: str, length: int, file: Path | str | None, where
     return arr
 
 
-__all__ = ["get", "iter_json_array", "number_list", "read_json"]
+__all__ = ["get", "iter_json_array", "number_list", "read_json", "scan_table"]

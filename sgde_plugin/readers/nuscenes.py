@@ -20,9 +20,10 @@ the asked-for scenes) and the text is dropped, so the full trainval set loads in
 
 from __future__ import annotations
 
+import re
 from bisect import bisect_left
 from collections import defaultdict
-from collections.abc import Collection
+from collections.abc import Collection, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +34,7 @@ from ..errors import InputError
 from ..geometry import make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..rig import Frame, Rig, ring_pairs
-from .jsonio import get, iter_json_array, number_list, read_json
+from .jsonio import get, number_list, read_json, scan_table
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
 REFERENCE = "CAM_FRONT"  # the camera whose timestamp and ego pose a frame takes
@@ -42,6 +43,11 @@ QUATERNION_TOL = 1e-3  # |q| must be 1 within this; the rotation uses the normal
 
 # kept per camera sample_data row (a plain tuple: ~1.2M of them for trainval with sweeps)
 _TOKEN, _SAMPLE, _EGO, _CHANNEL, _CALIB, _TIME, _KEY, _FILE, _SIZE = range(9)
+# cheap look-ups in a row's text, so rows we do not keep are never parsed (see jsonio.scan_table)
+_CALIB_RE = re.compile(r'"calibrated_sensor_token"\s*:\s*"([^"\\]*)"')
+_SAMPLE_RE = re.compile(r'"sample_token"\s*:\s*"([^"\\]*)"')
+_KEY_RE = re.compile(r'"is_key_frame"\s*:\s*(true|false)')
+_TOKEN_RE = re.compile(r'"token"\s*:\s*"([^"\\]*)"')
 
 
 def is_tables_folder(folder: Path) -> bool:
@@ -167,8 +173,13 @@ class NuScenesTables:
         sizes: dict[tuple[int, int], tuple[int, int]] = {}
         shared_calib = {t: t for t in calib_channel}
 
-        def reduce(pairs: list) -> tuple | None:
-            row = dict(pairs)
+        # rows `reduce` would drop, recognised without parsing them (unknown tokens are parsed: errors)
+        select = [(_CALIB_RE, lambda v: calib_channel.get(v, "?") is not None),
+                  (_SAMPLE_RE, lambda v: sample_scene.get(v, "?") is not None)]
+        if keyframes_only:
+            select.insert(0, (_KEY_RE, lambda v: v == "true"))
+
+        def reduce(row: dict) -> tuple | None:
             try:
                 calib = row["calibrated_sensor_token"]
                 channel = calib_channel[calib]
@@ -183,16 +194,15 @@ class NuScenesTables:
                 ts, w, h, filename = row["timestamp"], row["width"], row["height"], row["filename"]
                 out = (row["token"], sample, row["ego_pose_token"], channels[channel], shared_calib[calib],
                        ts, key, filename, sizes.setdefault((w, h), (w, h)))
-            except KeyError as exc:
+            except (KeyError, TypeError) as exc:
                 raise _row_error(path, row, exc) from None
             if type(ts) is not int or type(w) is not int or type(h) is not int or type(filename) is not str:
                 raise InputError(path, f"[token={row['token']}]", "timestamp/width/height/filename has the wrong type")
             return out
 
         self._rows_by_scene: dict[str, list[tuple]] = defaultdict(list)
-        for item in iter_json_array(path, reduce):
-            if item is not None:
-                self._rows_by_scene[sample_scene[item[_SAMPLE]]].append(item)
+        for item in scan_table(path, reduce, select):
+            self._rows_by_scene[sample_scene[item[_SAMPLE]]].append(item)
 
     def _load_ego_poses(self) -> None:
         path = self.dir / "ego_pose.json"
@@ -200,17 +210,13 @@ class NuScenesTables:
         for rows in self._rows_by_scene.values():
             needed.update(r[_EGO] for r in rows if r[_CHANNEL] == REFERENCE)
 
-        def reduce(pairs: list) -> tuple | None:
-            row = dict(pairs)
+        def reduce(row: dict) -> tuple | None:
             token = row.get("token")
             if token not in needed:
                 return None
             return token, _pose(row, path, f"[token={token}]")
 
-        self._ego: dict[str, np.ndarray] = {}
-        for item in iter_json_array(path, reduce):
-            if item is not None:
-                self._ego[item[0]] = item[1]
+        self._ego: dict[str, np.ndarray] = dict(scan_table(path, reduce, [(_TOKEN_RE, needed.__contains__)]))
 
     # --- rigs --------------------------------------------------------------------------------
     def scene_names(self) -> list[str]:
@@ -291,7 +297,7 @@ class NuScenesTables:
         if pose is None:
             raise InputError(self.dir / "ego_pose.json", f"token {ref[_EGO]}",
                              f"missing (referenced by sample_data {ref[_TOKEN]})")
-        images = {c: self.root / r[_FILE] for c, r in chosen.items()}
+        images = _Files(self.root, {c: r[_FILE] for c, r in chosen.items()})
         if check:
             for cam in cameras:
                 path, r = images[cam.name], chosen[cam.name]
@@ -304,6 +310,22 @@ class NuScenesTables:
         return Frame(frame_id, ref[_TIME], pose, images)
 
 
+class _Files(Mapping):
+    """camera -> image Path, built on access (a trainval rig with sweeps has ~1M of them)."""
+
+    def __init__(self, root: Path, names: dict[str, str]):
+        self._root, self._names = root, names
+
+    def __getitem__(self, camera: str) -> Path:
+        return self._root / self._names[camera]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+
 def _nearest(rows: list[tuple], times: list[int], t: int) -> tuple:
     i = bisect_left(times, t)
     if i == 0:
@@ -313,14 +335,16 @@ def _nearest(rows: list[tuple], times: list[int], t: int) -> tuple:
     return rows[i] if times[i] - t < t - times[i - 1] else rows[i - 1]
 
 
-def _row_error(path: Path, row: dict, exc: KeyError) -> InputError:
-    """A missing column or a token that points nowhere, named by the row's token."""
-    key = exc.args[0]
+def _row_error(path: Path, row: dict, exc: Exception) -> InputError:
+    """A missing column, a token of the wrong type or a token that points nowhere, named by the row's token."""
     where = f"[token={row.get('token', '?')}]"
     for column in ("token", "calibrated_sensor_token", "is_key_frame", "sample_token", "timestamp", "width",
                    "height", "filename", "ego_pose_token"):
         if column not in row:
             return InputError(path, f"{where}.{column}", "missing")
+    if not isinstance(exc, KeyError):
+        return InputError(path, where, "a token or size column has the wrong type")
+    key = exc.args[0]
     column = "calibrated_sensor_token" if row.get("calibrated_sensor_token") == key else "sample_token"
     table = "calibrated_sensor" if column == "calibrated_sensor_token" else "sample"
     return InputError(path, f"{where}.{column}", f"points at no {table} row ({key!r})")
