@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sgde_plugin.cache.fingerprint import fingerprint
+from sgde_plugin.cache.fingerprints import fingerprint
 from sgde_plugin.cache.store import PriorCache
 from sgde_plugin.cli import main as cli_main
 from sgde_plugin.commands.prior import load_rig_with_override

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from sgde_plugin.cache.build import build_cache
-from sgde_plugin.cache.fingerprint import fingerprint, fingerprint_parts
+from sgde_plugin.cache.fingerprints import fingerprint, fingerprint_parts
 from sgde_plugin.cache.inspect import cache_info, verify_cache
 from sgde_plugin.cache.store import PriorCache, SceneWriter, prepare_scene, read_key, store_keys
 from sgde_plugin.cache.synthetic import SyntheticPriorCompute
@@ -121,7 +121,7 @@ def test_readers_see_only_finished_frames_and_resume_overwrites_leftovers(tmp_pa
     rig = tiny_rig(4)
     out = str(tmp_path / "c")
     parts = {**fingerprint_parts(rig, CONFIG, ALGO)}
-    from sgde_plugin.cache.fingerprint import config_document
+    from sgde_plugin.cache.fingerprints import config_document
 
     parts["config_document"] = config_document(CONFIG, ALGO)
     plan = prepare_scene(out, "s", rig, parts)
@@ -231,3 +231,32 @@ def test_info_reports_frames_coverage_and_size(tmp_path, capsys):
     assert scene["fingerprint"] == fingerprint(rig, CONFIG, ALGO)
     assert cli_main(["cache", "info", str(out)]) == 0
     assert scene["fingerprint"] in capsys.readouterr().out
+
+
+def test_lazy_package_exports_do_not_import_torch_or_zarr():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, sgde_plugin\n"
+        "assert 'torch' not in sys.modules and 'zarr' not in sys.modules\n"
+        "from sgde_plugin import PriorCache, load_rig\n"
+        "from sgde_plugin.cache import PriorCache as P2, fingerprint\n"
+        "assert PriorCache is P2 and callable(load_rig) and callable(fingerprint)\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+def test_extrapolation_table_arithmetic():
+    from sgde_plugin.benchmarks.cache import extrapolation
+
+    rows = {r["set"]: r for r in extrapolation(50_000, 0.18)}
+    key = rows["keyframes, trainval"]
+    assert key["camera_images"] == 204_894
+    assert key["GB_800x450"] == pytest.approx(204_894 * 50_000 / 1e9)
+    assert key["core_h_800x450"] == pytest.approx(34_149 * 0.18 / 3600)
+    assert key["h_on_64_cores_1600x900_est"] == pytest.approx(4 * 34_149 * 0.18 / 3600 / 64)
+    assert rows["all camera images (sweeps)"]["GB_1600x900_est"] == pytest.approx(4 * 1.4e6 * 50_000 / 1e9)

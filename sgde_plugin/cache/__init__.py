@@ -11,9 +11,9 @@ from typing import Any
 _EXPORTS = {
     "PriorCache": "store",
     "SceneWriter": "store",
-    "fingerprint": "fingerprint",
-    "fingerprint_parts": "fingerprint",
-    "CACHE_FORMAT": "fingerprint",
+    "fingerprint": "fingerprints",
+    "fingerprint_parts": "fingerprints",
+    "CACHE_FORMAT": "fingerprints",
     "build_cache": "build",
     "BuildReport": "build",
     "PriorCompute": "build",

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import progress
-from .fingerprint import config_document, fingerprint_parts
+from .fingerprints import config_document, fingerprint_parts
 from .store import SceneWriter, location_name, prepare_scene, remove_partial_files
 
 Compute = Callable[[str], Mapping[str, tuple[np.ndarray, np.ndarray | None]]]

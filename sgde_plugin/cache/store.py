@@ -34,7 +34,7 @@ from zarr.core.sync import sync
 
 from .. import __version__
 from ..errors import InputError
-from .fingerprint import CACHE_FORMAT, config_document, describe_config_change, digest, rig_document
+from .fingerprints import CACHE_FORMAT, config_document, describe_config_change, digest, rig_document
 from .resample import resize_depth
 
 UNITS = {"depth": "m", "confidence": "1/255", "timestamps": "us"}
