@@ -14,7 +14,7 @@ import pytest
 
 from sgde_plugin.cache.build import build_cache
 from sgde_plugin.cache.fingerprints import fingerprint, fingerprint_parts
-from sgde_plugin.cache.inspect import cache_info, verify_cache
+from sgde_plugin.cache.inspection import cache_info, verify_cache
 from sgde_plugin.cache.store import PriorCache, SceneWriter, prepare_scene, read_key, store_keys
 from sgde_plugin.cache.synthetic import SyntheticPriorCompute
 from sgde_plugin.cli import main as cli_main

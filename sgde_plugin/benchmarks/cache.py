@@ -135,7 +135,7 @@ def extrapolation(bytes_per_image: float, cpu_s_per_frame: float, cameras: int =
 
 def run(fast: bool = False) -> dict[str, Any]:
     """All figures of the cache benchmark (fast: fewer frames, fewer reads)."""
-    from ..cache.inspect import cache_info
+    from ..cache.inspection import cache_info
     from ..cache.store import store_keys
     from ..tables import markdown_table
 

@@ -19,8 +19,8 @@ _EXPORTS = {
     "PriorCompute": "build",
     "PriorDataset": "dataset",
     "SyntheticPriorCompute": "synthetic",
-    "cache_info": "inspect",
-    "verify_cache": "inspect",
+    "cache_info": "inspection",
+    "verify_cache": "inspection",
 }
 
 

@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     import sys
 
-    from ..cache.inspect import cache_info, verify_cache
+    from ..cache.inspection import cache_info, verify_cache
     from ..io import atomic_write_text
 
     if args.action == "info":
