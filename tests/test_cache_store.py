@@ -260,3 +260,14 @@ def test_extrapolation_table_arithmetic():
     assert key["core_h_800x450"] == pytest.approx(34_149 * 0.18 / 3600)
     assert key["h_on_64_cores_1600x900_est"] == pytest.approx(4 * 34_149 * 0.18 / 3600 / 64)
     assert rows["all camera images (sweeps)"]["GB_1600x900_est"] == pytest.approx(4 * 1.4e6 * 50_000 / 1e9)
+
+
+def test_not_a_cache_is_refused_with_one_line(tmp_path):
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.txt").write_text("x")
+    with pytest.raises(InputError, match="exists and is not a prior cache"):
+        build(tiny_rig(1), tmp_path / "photos")
+    with pytest.raises(InputError, match="prior cache does not exist"):
+        PriorCache(tmp_path / "nothing")
+    with pytest.raises(InputError, match="not a prior cache"):
+        PriorCache(tmp_path / "photos")

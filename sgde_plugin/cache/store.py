@@ -171,8 +171,10 @@ def _prepare_root(store: Store, location: Any, parts: Mapping[str, Any]) -> zarr
     try:
         root = zarr.open_group(store, mode="r+", zarr_format=3)
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError):
-        if isinstance(store, zarr.storage.LocalStore) and Path(store.root).exists() and any(Path(store.root).iterdir()):
-            raise InputError(location_name(location), None, "exists and is not a prior cache") from None
+        if isinstance(store, zarr.storage.LocalStore) and Path(store.root).exists():
+            # an empty folder, or one holding only a temporary file of an interrupted creation, is fine
+            if any(not p.name.endswith(".partial") for p in Path(store.root).iterdir()):
+                raise InputError(location_name(location), None, "exists and is not a prior cache") from None
         attrs = {
             "format": CACHE_FORMAT,
             "config": parts["config_document"],
