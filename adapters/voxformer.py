@@ -177,3 +177,20 @@ def proposal_depth_loss(
             prior_loss = PriorL1Loss()
         loss = loss + prior_loss(pred_depth.flatten(0, 1).unsqueeze(1), prior.flatten(0, 1).unsqueeze(1))
     return loss
+
+
+class RigDepthToVoxelProposals(nn.Module):
+    """``DepthToVoxelProposals`` with the rig's camera models fixed: tensors in, tensors out (exportable).
+
+    ``forward(depth, sensor_to_ego, prior, confidence)`` -> (occupancy, proposals).
+    """
+
+    def __init__(self, proposals: DepthToVoxelProposals, cameras: Sequence[CameraModel]) -> None:
+        super().__init__()
+        self.proposals = proposals
+        self.cameras = list(cameras)
+
+    def forward(self, depth: Tensor, sensor_to_ego: Tensor, prior: Tensor, confidence: Tensor) -> tuple[Tensor, Tensor]:
+        """[B, N, H, W] maps and [B, N, 4, 4] poses -> occupancy [B, X, Y, Z], proposals [B, X/s, Y/s, Z/s]."""
+        out = self.proposals(depth, self.cameras, sensor_to_ego, prior, confidence)
+        return out["occupancy"], out["proposals"]
