@@ -59,10 +59,10 @@ def sample_octaves(bank: NoiseBank, s: Tensor, t: Tensor, texel_m: float) -> Ten
 
 
 def octave_weights(footprint_m: Tensor, texel_m: float, octaves: int) -> Tensor:
-    """Per-pixel weight of each octave: 1 while its lattice spacing is >= 2 footprints, 0 below 1 footprint."""
+    """Per-pixel weight of each octave: 1 while its lattice spacing is >= 3 footprints, 0 below 1 footprint."""
     spacing = texel_m * (2.0 ** torch.arange(octaves, dtype=footprint_m.dtype))
     ratio = spacing[None, :] / footprint_m.clamp_min(1e-6)[:, None]
-    return (ratio - 1.0).clamp(0.0, 1.0)
+    return ((ratio - 1.0) / 2.0).clamp(0.0, 1.0)
 
 
 def fbm(bank: NoiseBank, s: Tensor, t: Tensor, footprint_m: Tensor, texel_m: float, gains: Tensor) -> Tensor:

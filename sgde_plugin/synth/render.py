@@ -10,7 +10,9 @@ float32 ray parameters keep the depth accurate to ~1e-6 relative.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +27,23 @@ TILE_PX = 16
 MAX_DISTANCE_M = 400.0  # primitives farther than this are not drawn
 MAX_DEPTH_M = 250.0  # ground truth beyond this is "no value" (depth PNGs stop at 255.99 m)
 _CONE_MARGIN = 2e-3
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run torch's intra-op work on `n` threads inside the block, then restore the previous count.
+
+    Rendering is many medium-sized element-wise ops; on a busy machine OpenMP workers spinning
+    for each op can cost 10x, so the renderer runs single-threaded and parallelises over cameras.
+    """
+    old = torch.get_num_threads()
+    if old != n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if old != n:
+            torch.set_num_threads(old)
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,10 +82,10 @@ def ray_tiles(intrinsics: CameraModel, k: int = 1, tile: int = TILE_PX) -> RayTi
     uv, inside = _subpixel_grid(intrinsics.width, intrinsics.height, tile, k)
     rays, valid = intrinsics.unproject_torch(uv)
     valid = valid & inside & torch.isfinite(rays).all(-1)
-    # angular size of one (sub-)pixel, from the neighbouring positions
-    step = 1.0 / k
-    ru, _ = intrinsics.unproject_torch(uv + torch.tensor([step, 0.0], dtype=uv.dtype))
-    rv, _ = intrinsics.unproject_torch(uv + torch.tensor([0.0, step], dtype=uv.dtype))
+    # angular size of one whole pixel (texture is pre-filtered at pixel scale; sub-rays only
+    # anti-alias silhouettes), from the neighbouring positions
+    ru, _ = intrinsics.unproject_torch(uv + torch.tensor([1.0, 0.0], dtype=uv.dtype))
+    rv, _ = intrinsics.unproject_torch(uv + torch.tensor([0.0, 1.0], dtype=uv.dtype))
     ang_u = torch.acos((rays * ru).sum(-1).clamp(-1, 1))
     ang_v = torch.acos((rays * rv).sum(-1).clamp(-1, 1))
     pixel_angle = torch.nan_to_num(0.5 * (ang_u + ang_v), nan=1e-3)
@@ -205,14 +224,18 @@ def _untile(x: Tensor, tiles: RayTiles, height: int, width: int) -> Tensor:
 
 
 def render(
-    world: World, camera: Camera, ego_to_world: np.ndarray, time_s: float, supersample: int = 1
+    world: World, camera: Camera, ego_to_world: np.ndarray, time_s: float, supersample: int = 1, threads: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """RGB uint8 (H, W, 3) and depth float32 (H, W) in the camera's convention (z or range), 0 = no value."""
+    """RGB uint8 (H, W, 3) and depth float32 (H, W) in the camera's convention (z or range), 0 = no value.
+
+    `threads` is torch's intra-op thread count during the call (1 is fastest on a shared machine;
+    render several cameras concurrently for throughput, as `synth_sequence` does).
+    """
     if supersample < 1:
         raise ValueError("supersample must be >= 1")
     intr = camera.intrinsics
     cam_to_world = np.asarray(ego_to_world, dtype=np.float64) @ np.asarray(camera.sensor_to_ego, dtype=np.float64)
-    with torch.no_grad():
+    with torch.no_grad(), torch_threads(threads):
         tiles1 = ray_tiles(intr, 1)
         hits1 = trace(world, tiles1, cam_to_world, time_s)
         if intr.depth_is_range:

@@ -13,6 +13,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from ..geometry import make_transform, rodrigues
 from ..io import write_depth_png, write_image
 from ..rig import Frame, Rig, ring_pairs, write_rig_json
 from .presets import preset_cameras, preset_ring
-from .render import render
+from .render import render, torch_threads
 from .world import MAX_FRAMES, World, build_world
 
 FRAME_RATE_HZ = 10.0
@@ -87,18 +88,32 @@ def _rigs(preset: str, frames: int, seed: int, scale: float, noise_deg: float, n
     return rig_true, rig
 
 
+def default_workers() -> int:
+    """Cameras rendered concurrently: one per core, at most 4."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
 def _render_frames(world: World, rig_true: Rig, supersample: int,
-                   sink: Callable[[str, str, np.ndarray, np.ndarray], None], show_progress: bool | None) -> None:
+                   sink: Callable[[str, str, np.ndarray, np.ndarray], None], show_progress: bool | None,
+                   workers: int) -> None:
+    """Render every (frame, camera) with the true rig, `workers` at a time; `sink` receives them in order."""
     from ..progress import progress
 
     jobs = [(fr, cam) for fr in rig_true.frames for cam in rig_true.cameras]
-    for fr, cam in progress(jobs, desc="synth", total=len(jobs), enabled=show_progress):
-        rgb, depth = render(world, cam, fr.ego_to_world, fr.timestamp_us * 1e-6, supersample)
-        sink(fr.id, cam.name, rgb, depth)
+
+    def one(job: tuple[Frame, Camera]) -> tuple[np.ndarray, np.ndarray]:
+        fr, cam = job
+        return render(world, cam, fr.ego_to_world, fr.timestamp_us * 1e-6, supersample, threads=1)
+
+    with torch_threads(1), ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        results = pool.map(one, jobs)
+        for (fr, cam), (rgb, depth) in progress(zip(jobs, results), desc="synth", total=len(jobs),
+                                                enabled=show_progress):
+            sink(fr.id, cam.name, rgb, depth)
 
 
 def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, pose_noise_deg: float = 1.0,
-                   pose_noise_m: float = 0.05, supersample: int = 1) -> SynthSequence:
+                   pose_noise_m: float = 0.05, supersample: int = 1, workers: int | None = None) -> SynthSequence:
     """Render a sequence in memory (images and depths keyed by frame id, then camera name)."""
     _check(preset, frames, scale, pose_noise_deg, pose_noise_m)
     world = build_world(seed)
@@ -109,13 +124,13 @@ def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, 
         seq.images.setdefault(fid, {})[cam] = rgb
         seq.depths.setdefault(fid, {})[cam] = depth
 
-    _render_frames(world, rig_true, supersample, keep, show_progress=False)
+    _render_frames(world, rig_true, supersample, keep, False, workers or default_workers())
     return seq
 
 
 def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, scale: float = 1.0,
                 pose_noise_deg: float = 1.0, pose_noise_m: float = 0.05, supersample: int = 1,
-                show_progress: bool | None = None) -> Path:
+                show_progress: bool | None = None, workers: int | None = None) -> Path:
     """Render a sequence into an sgde-rig/1 folder (built in a temporary sibling, renamed at the end).
 
     `out_dir` must not exist or be an empty folder. Writes rig.json (perturbed extrinsics),
@@ -137,7 +152,7 @@ def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, sc
         for fr in rig_true.frames:
             (tmp / "frames" / fr.id).mkdir(parents=True, exist_ok=True)
             (tmp / "depth" / fr.id).mkdir(parents=True, exist_ok=True)
-        _render_frames(world, rig_true, supersample, save, show_progress)
+        _render_frames(world, rig_true, supersample, save, show_progress, workers or default_workers())
         write_rig_json(rig, tmp / "rig.json")
         write_rig_json(rig_true, tmp / "rig_true.json")
         os.chmod(tmp, 0o755)

@@ -17,13 +17,13 @@ from .world import CAR_BODY, CAR_GLASS, FACADE, METAL, SIDEWALK, TYRE, World
 _SKY_HORIZON = torch.tensor([0.78, 0.84, 0.90])
 _SKY_ZENITH = torch.tensor([0.35, 0.52, 0.80])
 _PAINT = torch.tensor([0.88, 0.88, 0.84])
-_GLASS = torch.tensor([0.16, 0.20, 0.25])
+_GLASS = torch.tensor([0.30, 0.36, 0.44])  # window glass mostly reflects the sky
 _FRAME = torch.tensor([0.85, 0.84, 0.80])
 _MORTAR = torch.tensor([0.72, 0.70, 0.66])
 _ROOF = torch.tensor([0.30, 0.29, 0.28])
 
 # octave gains (7 octaves, lattice spacing texel * 2**c)
-_G_FINE = torch.tensor([0.07, 0.08, 0.08, 0.07, 0.06, 0.05, 0.04])
+_G_FINE = torch.tensor([0.035, 0.045, 0.055, 0.065, 0.07, 0.07, 0.06])
 _G_COARSE = torch.tensor([0.05, 0.06, 0.07, 0.07, 0.06, 0.05, 0.05])
 _G_SOFT = torch.tensor([0.02, 0.025, 0.03, 0.03, 0.03, 0.025, 0.02])
 
@@ -38,8 +38,15 @@ def _mix(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
     return a * (1 - w[:, None]) + b * w[:, None]
 
 
+# texture pre-filter width in pixels: a real camera's optics and demosaicing blur over ~1.5 pixels
+FILTER_PX = 1.5
+# surfaces themselves carry no detail finer than this (soft paint and frame edges), in metres
+SURFACE_BLUR_M = 0.015
+
+
 def _footprint(t: Tensor, pixel_angle: Tensor, n_dot_d: Tensor) -> Tensor:
-    return t * pixel_angle / n_dot_d.abs().clamp_min(0.2)
+    f = FILTER_PX * t * pixel_angle / n_dot_d.abs().clamp_min(0.2)
+    return torch.sqrt(f * f + SURFACE_BLUR_M**2)
 
 
 def ground_albedo(world: World, x: Tensor, y: Tensor, f: Tensor) -> Tensor:
@@ -70,7 +77,7 @@ def facade_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor,
     row = torch.floor(z / 0.075)
     shift = torch.remainder(row, 2.0) * 0.12
     mortar = 1 - (1 - stripes(z, 0.075, 0.01, f)) * (1 - stripes(s + shift, 0.24, 0.01, f))
-    wall = _mix(wall, _MORTAR * (1 + grain[:, None]), mortar * brick * 0.85)
+    wall = _mix(wall, _MORTAR * (1 + grain[:, None]), mortar * brick * 0.5)
     # a cornice line at every floor
     cornice = stripes(z - floor_h + 0.1, floor_h, 0.22, f) * band(z, floor_h - 0.5, top - 0.3, f)
     wall = _mix(wall, colour * 0.75 + 0.2, cornice * 0.8)
@@ -78,12 +85,12 @@ def facade_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor,
     sill = (floor_h - win_h) / 2
     x0 = (spacing - win_w) / 2
     upper = band(z, floor_h, top - 0.8, f)
-    frame = stripes(s - x0 + 0.08, spacing, win_w + 0.16, f) * stripes(z - sill + 0.08, floor_h, win_h + 0.16, f)
+    frame = stripes(s - x0 + 0.12, spacing, win_w + 0.24, f) * stripes(z - sill + 0.12, floor_h, win_h + 0.24, f)
     glass = stripes(s - x0, spacing, win_w, f) * stripes(z - sill, floor_h, win_h, f)
     # shop windows at street level
     shop = band(z, 0.55, floor_h - 0.6, f) * stripes(s - 0.4, 2 * spacing, 1.5 * spacing, f)
-    glass_col = _GLASS * (1 + 2.5 * blotch[:, None] + grain[:, None])
-    out = _mix(wall, _FRAME * (1 + 0.5 * grain[:, None]), frame * upper)
+    glass_col = _GLASS * (1 + 1.5 * blotch[:, None] + grain[:, None])
+    out = _mix(wall, (0.5 * _FRAME + 0.5 * wall) * (1 + 0.5 * grain[:, None]), frame * upper)
     return _mix(out, glass_col, torch.maximum(glass * upper, shop))
 
 
@@ -96,7 +103,7 @@ def car_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor, ma
     seams = stripes(s + 0.45, 1.05, 0.02, f) * band(z, 0.35, 0.95, f)
     trim = band(torch.remainder(z, 10.0), 0.62, 0.68, f)
     body = _mix(paint, paint * 0.35, torch.maximum(seams, trim))
-    glass_col = _GLASS * 0.7 * (1 + 3 * fbm(bank, s * 0.5 + 9.0, z, f, 0.05, _G_COARSE)[:, None])
+    glass_col = _GLASS * 0.5 * (1 + 3 * fbm(bank, s * 0.5 + 9.0, z, f, 0.05, _G_COARSE)[:, None])
     pillars = stripes(s + 0.1, 0.9, 0.12, f)
     cabin = _mix(glass_col, paint, pillars)
     cabin = torch.where(top[:, None], paint, cabin)
