@@ -132,7 +132,11 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, Tensor], dict[str, Any]
 
 
 def _load_into(module: nn.Module, state: dict[str, Tensor], path: str | Path) -> None:
-    missing, unexpected = module.load_state_dict(state, strict=False)
+    try:
+        missing, unexpected = module.load_state_dict(state, strict=False)
+    except RuntimeError as exc:  # shape mismatches
+        detail = " ".join(line.strip() for line in str(exc).splitlines()[1:3])
+        raise InputError(path, "state_dict", f"does not fit the model: {detail}") from None
     if missing or unexpected:
         raise InputError(path, "state_dict", f"does not fit the model (missing {list(missing)[:3]}, "
                          f"unexpected {list(unexpected)[:3]})")

@@ -1,0 +1,104 @@
+"""`sgde export onnx`: checkpoints (weights_only), --check, --fp16, bad input (~30 s)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import torch
+from sgde_plugin.adapters import PriorDepthNet
+from sgde_plugin.export import read_metadata
+
+from sgde_plugin.cli import main
+
+SMALL = {"in_channels": 8, "mid_channels": 16, "context_channels": 4, "depth_channels": 112}
+
+
+def _checkpoint(path, **extra):
+    torch.manual_seed(3)
+    net = PriorDepthNet(**SMALL)
+    torch.save({"state_dict": net.state_dict(), "config": dict(SMALL), "fingerprint": "cache-fp-1234", **extra},
+               path)
+    return net
+
+
+def test_bevdepth_from_checkpoint_with_check(tmp_path, capsys):
+    ckpt = tmp_path / "bev.pt"
+    net = _checkpoint(ckpt)
+    out = tmp_path / "bev.onnx"
+    code = main(["export", "onnx", "--model", "bevdepth", "--checkpoint", str(ckpt), "--image-size", "32x64",
+                 "--out", str(out), "--check"])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert "check passed (8 comparisons" in text and "depth_logits" in text
+    meta = read_metadata(out)
+    assert meta["sgde.training_fingerprint"] == "cache-fp-1234"
+    from sgde_plugin.export.models import state_dict_sha256
+
+    assert meta["sgde.weights_sha256"] == state_dict_sha256(net)  # the checkpoint's weights went in
+
+
+def test_r18_fp16_with_check(tmp_path, capsys):
+    out = tmp_path / "r18.onnx"
+    code = main(["export", "onnx", "--model", "r18", "--image-size", "64x96", "--out", str(out), "--fp16", "--check"])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert "fp16" in text and "check passed" in text
+    assert read_metadata(out)["sgde.precision"] == "fp16"
+
+
+def test_bad_checkpoints_are_refused_with_one_line(tmp_path, capsys):
+    out = tmp_path / "x.onnx"
+    base = ["export", "onnx", "--model", "bevdepth", "--image-size", "32x64", "--out", str(out), "--checkpoint"]
+    # a pickle that needs arbitrary code (not weights only)
+    evil = tmp_path / "evil.pt"
+    torch.save({"state_dict": {"w": torch.zeros(1)}, "config": dict(SMALL), "hook": np.random.default_rng(0)}, evil)
+    assert main([*base, str(evil)]) == 2
+    assert "not a weights-only torch checkpoint" in capsys.readouterr().err
+    # weights that do not fit the model
+    wrong = tmp_path / "wrong.pt"
+    torch.save({"state_dict": {"reduce_conv.0.weight": torch.zeros(3, 3)}, "config": dict(SMALL)}, wrong)
+    assert main([*base, str(wrong)]) == 2
+    err = capsys.readouterr().err
+    assert "wrong.pt" in err and len(err.strip().splitlines()) == 1
+    assert main([*base, str(tmp_path / "missing.pt")]) == 2
+    assert "checkpoint file not found" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_exported_file_runs_in_a_fresh_onnxruntime_process(tmp_path):
+    # export, keep torch's outputs, then run the file in a new interpreter that imports no project code
+    from sgde_plugin.export.models import build_bevdepth
+    from sgde_plugin.export.parity import run_torch
+    from sgde_plugin.export.workflow import export_spec
+
+    spec = build_bevdepth(image_size=(32, 64), cams=6, in_channels=8, mid_channels=16, context_channels=4)
+    path = tmp_path / "bev.onnx"
+    export_spec(spec, path)
+    inputs = spec.random_inputs(3, 11)
+    np.savez(tmp_path / "io.npz", **{n: x.numpy() for n, x in zip(spec.input_names, inputs)},
+             **{f"ref_{n}": y for n, y in zip(spec.output_names, run_torch(spec.module, inputs))})
+    script = textwrap.dedent(f"""
+        import json, sys
+        import numpy as np
+        import onnxruntime as ort
+        sess = ort.InferenceSession({str(path)!r}, providers=["CPUExecutionProvider"])
+        data = np.load({str(tmp_path / "io.npz")!r})
+        feeds = {{i.name: data[i.name] for i in sess.get_inputs()}}
+        outs = sess.run(None, feeds)
+        diffs = {{o.name: float(np.abs(v - data["ref_" + o.name]).max()) for o, v in zip(sess.get_outputs(), outs)}}
+        meta = sess.get_modelmeta().custom_metadata_map
+        loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("torch", "sgde_plugin"))
+        print(json.dumps({{"diffs": diffs, "loaded": loaded, "model": meta.get("sgde.model"),
+                          "shapes": [list(v.shape) for v in outs]}}))
+    """)
+    res = subprocess.run([sys.executable, "-I", "-c", script], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    got = json.loads(res.stdout)
+    assert got["loaded"] == [] and got["model"] == "bevdepth"
+    assert got["shapes"] == [[18, 112, 2, 4], [18, 4, 2, 4]]
+    assert max(got["diffs"].values()) < 1e-4
