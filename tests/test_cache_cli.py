@@ -1,7 +1,7 @@
 """`sgde prior` end to end on a small synthetic nuScenes rig, then `sgde cache info|verify` and the
 refusals of a cache built with another calibration or other settings.
 
-Runtime ~30 s on 2 cores (rendering the synthetic rig dominates).
+Runtime ~10 s on 2 cores (400x225 cameras; rendering the synthetic rig dominates).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ synth = pytest.importorskip("sgde_plugin.synth.sequence")
 
 @pytest.fixture(scope="module")
 def synth_dir(tmp_path_factory):
-    return synth.write_synth("nuscenes", 2, tmp_path_factory.mktemp("synth") / "nus", scale=0.125)
+    return synth.write_synth("nuscenes", 2, tmp_path_factory.mktemp("synth") / "nus", scale=0.25)
 
 
 def test_sgde_prior_builds_resumes_and_refuses_mixing(synth_dir, tmp_path, capsys):
