@@ -271,3 +271,25 @@ def test_not_a_cache_is_refused_with_one_line(tmp_path):
         PriorCache(tmp_path / "nothing")
     with pytest.raises(InputError, match="not a prior cache"):
         PriorCache(tmp_path / "photos")
+
+
+def test_several_scenes_in_one_cache(tmp_path):
+    from dataclasses import replace
+
+    out = tmp_path / "c"
+    rig1 = tiny_rig(2)
+    rig2 = replace(tiny_rig(3), frames=tuple(replace(f, id=f"b{f.id}") for f in tiny_rig(3).frames))
+    build(rig1, out, scene="s1")
+    build(rig2, out, scene="s2")
+    cache = PriorCache(out)
+    assert cache.scenes() == ["s1", "s2"]
+    assert cache.frames() == ["000000", "000001", "b000000", "b000001", "b000002"]
+    fps = cache.fingerprints()
+    assert fps["s1"]["fingerprint"] == fps["s2"]["fingerprint"] == fingerprint(rig1, CONFIG, ALGO)
+    np.testing.assert_array_equal(cache.get("b000002", "B")[0], PriorCache(out, scene="s2").get("b000002", "B")[0])
+    assert PriorCache(out, scene="s1").frames() == ["000000", "000001"]
+    build(tiny_rig(2), out, scene="s3")  # the same frame ids as s1: ambiguous without a scene
+    with pytest.raises(KeyError, match="several scenes"):
+        PriorCache(out).get("000000", "A")
+    with pytest.raises(InputError, match="no such scene"):
+        PriorCache(out, scene="s9")
