@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Callable, Iterator
+from collections.abc import Set as AbstractSet
 from pathlib import Path
 from typing import Any
 
@@ -132,27 +133,26 @@ def _object_chunks(path: Path) -> Iterator[tuple[str, list[str]]]:
             buf += more
 
 
-Select = tuple[re.Pattern, Callable[[str], bool]]
+# (pattern whose group 1 is a row's value, a set of values, keep rows whose value IS in the set?)
+Select = tuple[re.Pattern, AbstractSet[str], bool]
 
 
 def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] = ()) -> list:
     """`reduce(row)` of every row of a JSON array of objects, keeping the results that are not None.
 
-    Streams the file. `select` lists (pattern, accept): a row whose text holds `pattern` (group 1 =
-    a value) with `accept(value)` False is one that `reduce` would drop, so it is never parsed (such
-    rows are checked for structure only). Falls back to the exact streaming parser when the rows are
-    not flat objects.
+    Streams the file. `select` names rows that `reduce` would drop, so they are never parsed (such
+    rows are checked for structure only): a row is skipped when its text holds `pattern` with a
+    value whose membership in the set differs from `keep_if_in`. Falls back to the exact streaming
+    parser when the rows are not flat objects.
     """
     out = []
     try:
         index = 0
         for part, pieces in _object_chunks(path):
-            keep = _selected(part, pieces, select)
-            for i in (i for i, k in enumerate(keep) if k):
+            for i in _selected(part, pieces, select):
                 piece = pieces[i]
-                text = piece[piece.index("{"):] + "}"
                 try:
-                    row = json.loads(text)
+                    row = json.loads(piece[piece.index("{"):] + "}")
                 except json.JSONDecodeError as exc:
                     raise InputError(path, f"element {index + i}", f"bad JSON ({exc.msg})") from None
                 result = reduce(row)
@@ -172,17 +172,17 @@ def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] =
     return out
 
 
-def _selected(part: str, pieces: list[str], select: list[Select]) -> list[bool]:
-    """Which rows may be kept: one `findall` per pattern over the whole chunk when each row holds it once."""
-    keep = [True] * len(pieces)
-    if not select:
-        return keep
-    for pattern, accept in select:
-        values = pattern.findall(part)
-        if len(values) != len(pieces):  # not exactly once per row: look row by row
-            values = [m.group(1) if (m := pattern.search(p)) else None for p in pieces]
-        keep = [k and (v is None or accept(v)) for k, v in zip(keep, values)]
-    return keep
+def _selected(part: str, pieces: list[str], select: list[Select]) -> list[int]:
+    """Indices of the rows of a chunk that pass every selection (rows without the pattern pass)."""
+    rows = list(range(len(pieces)))
+    for pattern, values, keep_if_in in select:
+        if 4 * len(rows) > len(pieces):  # most rows left: one findall over the chunk, if aligned
+            found = pattern.findall(part)
+            if len(found) == len(pieces):
+                rows = [i for i in rows if (found[i] in values) == keep_if_in]
+                continue
+        rows = [i for i in rows if (m := pattern.search(pieces[i])) is None or (m.group(1) in values) == keep_if_in]
+    return rows
 
 
 # --- field access with errors that name file and key ------------------------------------------

@@ -173,11 +173,11 @@ class NuScenesTables:
         sizes: dict[tuple[int, int], tuple[int, int]] = {}
         shared_calib = {t: t for t in calib_channel}
 
-        # rows `reduce` would drop, recognised without parsing them (unknown tokens are parsed: errors)
-        select = [(_CALIB_RE, lambda v: calib_channel.get(v, "?") is not None),
-                  (_SAMPLE_RE, lambda v: sample_scene.get(v, "?") is not None)]
+        # rows `reduce` would drop, recognised without parsing them (non-camera sensors, other scenes)
+        select = [(_CALIB_RE, {t for t, c in calib_channel.items() if c is None}, False),
+                  (_SAMPLE_RE, {t for t, sc in sample_scene.items() if sc is None}, False)]
         if keyframes_only:
-            select.insert(0, (_KEY_RE, lambda v: v == "true"))
+            select.insert(0, (_KEY_RE, {"false"}, False))
 
         def reduce(row: dict) -> tuple | None:
             try:
@@ -216,7 +216,7 @@ class NuScenesTables:
                 return None
             return token, _pose(row, path, f"[token={token}]")
 
-        self._ego: dict[str, np.ndarray] = dict(scan_table(path, reduce, [(_TOKEN_RE, needed.__contains__)]))
+        self._ego: dict[str, np.ndarray] = dict(scan_table(path, reduce, [(_TOKEN_RE, needed, True)]))
 
     # --- rigs --------------------------------------------------------------------------------
     def scene_names(self) -> list[str]:
