@@ -1,19 +1,35 @@
-"""`sgde demo`: not implemented yet (see the open issue)."""
+"""`sgde demo [--out DIR]`: the main job end to end on the built-in synthetic rig."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 
-HELP = "(not implemented yet)"
+HELP = "synthesise a rig, calibrate it, build and evaluate priors, train, export; writes DIR/report.md"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No arguments until the command exists."""
-    parser.add_argument("rest", nargs=argparse.REMAINDER)
+    """Arguments of `sgde demo`."""
+    parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
+    parser.add_argument("--frames", type=int, default=7, help="frames of the synthetic sequence (default 7)")
+    parser.add_argument("--scale", type=float, default=0.5, help="image scale of the 1600x900 rig (default 0.5)")
+    parser.add_argument("--steps", type=int, default=120, help="training steps per network arm (default 120)")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Say the command does not exist yet and fail."""
-    print("sgde demo: not implemented yet", file=sys.stderr)
-    return 1
+    """Run the demo and print its summary."""
+    from pathlib import Path
+
+    from ..demo import DemoSettings, run_demo
+    from ..errors import InputError
+
+    if args.frames < 2:
+        raise InputError(None, "--frames", "needs at least 2 frames (one is held out)")
+    if not 0.1 <= args.scale <= 1.0:
+        raise InputError(None, "--scale", "must be in [0.1, 1]")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, None, "exists and is not a folder")
+    settings = DemoSettings(frames=args.frames, scale=args.scale, train_steps=args.steps, seed=args.seed)
+    run_demo(out, settings)
+    return 0

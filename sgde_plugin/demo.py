@@ -1,0 +1,287 @@
+"""The main job end to end on the built-in synthetic rig: what `sgde demo` runs.
+
+synthesise a nuScenes-like sequence with noisy extrinsics -> calibrate (none, glc) -> priors into a
+cache per calibration -> evaluate against ground truth -> train a small depth net with and without the
+prior, test on a held-out frame -> export the prior net to ONNX and check it -> report.md with figures.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .io import atomic_write_text
+from .rig import Rig, attach_files, read_rig_folder, read_rig_json
+from .tables import format_table, markdown_table
+
+METRIC_COLUMNS = ["abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "coverage"]
+
+
+@dataclass(frozen=True)
+class DemoSettings:
+    """Sizes and budgets of the demo (defaults fit in about five minutes on two cores)."""
+
+    preset: str = "nuscenes"
+    frames: int = 7
+    scale: float = 0.5
+    seed: int = 0
+    net_size: tuple[int, int] = (128, 224)
+    train_steps: int = 120
+    methods: tuple[str, ...] = ("none", "glc")
+
+
+class Stopwatch:
+    """Named stage timings, printed as they finish."""
+
+    def __init__(self, log: Callable[[str], None]):
+        self.log = log
+        self.stages: dict[str, float] = {}
+
+    def run(self, name: str, fn: Callable[[], Any]) -> Any:
+        """Run one stage, record and log its duration."""
+        t0 = time.perf_counter()
+        self.log(f"[{name}] ...")
+        out = fn()
+        self.stages[name] = round(time.perf_counter() - t0, 1)
+        self.log(f"[{name}] done in {self.stages[name]:.1f} s")
+        return out
+
+
+def _true_rig(rig: Rig, root: Path) -> Rig:
+    true = read_rig_json(root / "rig_true.json")
+    return attach_files(true, root)
+
+
+def _evaluate(rig_true: Rig, cache_path: Path) -> dict[str, Any]:
+    from .cache import PriorCache
+    from .stereo.evaluate import evaluate_priors
+
+    cache = PriorCache(cache_path)
+    return evaluate_priors(rig_true, lambda f, c: cache.get(f, c)[0], rig_true.load_depth)
+
+
+def _overall(report: dict[str, Any]) -> dict[str, Any]:
+    from .stereo.evaluate import report_rows
+
+    return report_rows(report)[2][0]
+
+
+def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
+    """RigSequence at network size from the demo's own frames, its ground truth and its cached priors."""
+    import torch
+
+    from .benchmarks.train_effect import RigSequence, lidar_pattern
+    from .cache import PriorCache
+    from .cache.resample import resize_depth, resize_matrix, warp_image
+    from .stereo.evaluate import true_overlap
+
+    h, w = size
+    cache = PriorCache(cache_path)
+    cams = [c.resized(w, h) for c in rig_true.cameras]
+    names = rig_true.camera_names
+    F, N = len(rig_true.frames), len(cams)
+    images = np.zeros((F, N, h, w, 3), np.uint8)
+    depth = np.zeros((F, N, h, w), np.float32)
+    prior = np.zeros((F, N, h, w), np.float32)
+    for k, fr in enumerate(rig_true.frames):
+        for i, cam in enumerate(rig_true.cameras):
+            img = rig_true.load_image(fr.id, cam.name)
+            images[k, i] = warp_image(img, resize_matrix(img.shape[:2], (h, w)), (h, w))
+            depth[k, i] = resize_depth(rig_true.load_depth(fr.id, cam.name), (h, w))[0]
+            prior[k, i] = cache.get(fr.id, cam.name, size=(h, w))[0]
+    overlap = np.zeros(depth.shape, bool)
+    for k in range(F):
+        for i in range(N):
+            for j in ((i - 1) % N, (i + 1) % N):
+                overlap[k, i] |= true_overlap(cams[i], depth[k, i], cams[j], depth[k, j])
+    supervision = np.where(
+        np.stack([np.stack([lidar_pattern(depth[k, i], cams[i]) for i in range(N)]) for k in range(F)]), depth, 0
+    ).astype(np.float32)
+    torch.manual_seed(0)
+    pairs = [(names[i], names[(i + 1) % N]) for i in range(N)]
+    return RigSequence(cams, pairs, images, depth, supervision, prior, prior > 0, overlap,
+                       "demo frames", "demo cache (glc)")
+
+
+def _train_and_test(seq, steps: int, out: Path) -> tuple[list[dict], Path]:
+    """Train the baseline and the prior net (input + L1) on all but the last frame; test on the last."""
+    import torch
+
+    from .benchmarks.train_effect import evaluate, train_arm
+    from .nn import DepthNet
+
+    frames = list(range(seq.images.shape[0]))
+    train, test = frames[:-1], frames[-1:]
+    rows = []
+    ckpt = out / "r18_prior.pt"
+    for label, use_prior, weight in (("baseline (RGB)", False, None), ("+ prior input & L1", True, 0.005)):
+        torch.manual_seed(0)
+        net = DepthNet(use_prior=use_prior)
+        seconds = train_arm(net, seq, train, steps, seed=0, prior_weight=weight)
+        res = evaluate(net, seq, test)
+        rows.append({"model": label, **{k: res[k] for k in ("abs_rel", "rmse", "a1", "abs_rel_overlap", "dep_con")},
+                     "train_s": seconds})
+        if use_prior:
+            from .io import atomic_path
+
+            with atomic_path(ckpt) as tmp:
+                torch.save({"state_dict": net.state_dict(), "config": {"use_prior": True}}, tmp)
+    return rows, ckpt
+
+
+def _export(ckpt: Path, out: Path, size: tuple[int, int]) -> dict[str, Any]:
+    from .export.models import build_r18
+    from .export.workflow import export_spec
+
+    spec = build_r18(ckpt, image_size=size)
+    report = export_spec(spec, out / "depth_r18_prior.onnx", check=True)
+    worst = max(r.max_abs_diff for r in report["parity"])
+    return {"path": report["path"], "bytes": report["bytes"], "comparisons": len(report["parity"]),
+            "max_abs_diff": worst}
+
+
+def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Callable[[str], None] = print) -> dict:
+    """Run the whole demo into `out`; returns the summary (also written as summary.json and report.md)."""
+    from .cache.build import build_cache
+    from .calib import calibrate
+    from .figures import CameraPanel, save_bev_points, save_prior_panels
+    from .rig import write_rig_json
+    from .stereo.pipeline import PriorConfig
+    from .synth.sequence import write_synth
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    clock = Stopwatch(log)
+    s = settings
+    rig_dir = out / "rig"
+    if not (rig_dir / "rig.json").exists():
+        clock.run("synth", lambda: write_synth(s.preset, s.frames, rig_dir, seed=s.seed, scale=s.scale))
+    rig = read_rig_folder(rig_dir)
+    rig_true = _true_rig(rig, rig_dir)
+
+    rigs: dict[str, Rig] = {}
+    calib_rows = []
+    for method in s.methods:
+        refined, report = clock.run(f"calibrate {method}", lambda m=method: calibrate(rig, method=m))
+        write_rig_json(refined, out / f"rig_{method}.json")
+        rigs[method] = refined
+        calib_rows.append(_calibration_row(method, refined, rig_true, report))
+
+    prior_rows, caches = [], {}
+    config = PriorConfig()
+    for method, r in rigs.items():
+        caches[method] = out / f"cache_{method}"
+        clock.run(f"priors {method}", lambda r=r, m=method: build_cache(r, caches[m], config, show_progress=False))
+        report = clock.run(f"eval {method}", lambda m=method: _evaluate(rig_true, caches[m]))
+        prior_rows.append({"extrinsics": method, **{k: _overall(report).get(k) for k in METRIC_COLUMNS}})
+    true_cache = out / "cache_true"
+    clock.run("priors true", lambda: build_cache(rig_true, true_cache, config, show_progress=False))
+    report = clock.run("eval true", lambda: _evaluate(rig_true, true_cache))
+    prior_rows.append({"extrinsics": "true (reference)", **{k: _overall(report).get(k) for k in METRIC_COLUMNS}})
+
+    best = "glc" if "glc" in rigs else s.methods[-1]
+    clock.run("figures", lambda: _figures(out, rig_true, rigs, caches, best, save_prior_panels, save_bev_points,
+                                          CameraPanel))
+    seq = clock.run("network data", lambda: _network_arrays(rig_true, caches[best], s.net_size))
+    net_rows, ckpt = clock.run("train", lambda: _train_and_test(seq, s.train_steps, out))
+    export = clock.run("export", lambda: _export(ckpt, out, s.net_size))
+
+    summary = {"settings": s.__dict__, "calibration": calib_rows, "priors": prior_rows, "network": net_rows,
+               "export": export, "seconds": clock.stages}
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, default=str) + "\n")
+    atomic_write_text(out / "report.md", _report_md(summary))
+    log("")
+    log("calibration (adjacent relative-pose error against the true rig)")
+    log(format_table(calib_rows))
+    log("")
+    log("depth prior against ground truth (overall)")
+    log(format_table(prior_rows))
+    log("")
+    log(f"depth net on the held-out frame ({s.net_size[0]}x{s.net_size[1]}, {s.train_steps} steps per arm)")
+    log(format_table(net_rows))
+    log("")
+    log(f"ONNX: {export['path']} ({export['bytes'] / 2**20:.1f} MiB), {export['comparisons']} parity checks, "
+        f"max |onnxruntime - torch| = {export['max_abs_diff']:.2e} m")
+    log(f"report: {out / 'report.md'}")
+    return summary
+
+
+def _calibration_row(method: str, refined: Rig, rig_true: Rig, report: dict) -> dict:
+    from .calib.evaluate import relative_pose_errors
+
+    err = relative_pose_errors(refined, rig_true)
+    rot = [e["rotation_deg"] for e in err]
+    trans = [e["translation_m"] for e in err]
+    return {"method": method, "status": report.get("status", "-"),
+            "rot_err_median_deg": float(np.median(rot)), "rot_err_max_deg": float(np.max(rot)),
+            "trans_err_max_cm": 100 * float(np.max(trans))}
+
+
+def _figures(out: Path, rig_true: Rig, rigs: dict[str, Rig], caches: dict[str, Path], best: str,
+             save_prior_panels, save_bev_points, CameraPanel) -> None:  # noqa: N803 - a class passed in
+    from .cache import PriorCache
+
+    frame = rig_true.frames[len(rig_true.frames) // 2].id
+    cache = PriorCache(caches[best])
+    panels = [CameraPanel(c, rig_true.load_image(frame, c), cache.get(frame, c)[0], rig_true.load_depth(frame, c))
+              for c in rig_true.camera_names]
+    save_prior_panels(out / "priors.png", panels)
+    views = {}
+    for method, r in rigs.items():
+        pc = PriorCache(caches[method])
+        label = {"none": "dataset (noisy) poses", "glc": "calibrated poses (GLC)"}.get(method, method)
+        views[label] = (r.cameras, {c: pc.get(frame, c)[0] for c in r.camera_names})
+    save_bev_points(out / "bev_points.png", views)
+
+
+def _report_md(summary: dict) -> str:
+    s = summary["settings"]
+    lines = [
+        "# SGDE demo report",
+        "",
+        f"Synthetic `{s['preset']}` rig, {s['frames']} frames at scale {s['scale']}, seed {s['seed']}; "
+        "extrinsics perturbed like a real data set's (about 1 degree, 5 cm per camera).",
+        "",
+        "## Calibration",
+        "",
+        "Error of adjacent relative poses against the true rig.",
+        "",
+        markdown_table(summary["calibration"]),
+        "",
+        "## Depth prior accuracy",
+        "",
+        "Prior against ground truth on prior-valid pixels; coverage = share of ground-truth pixels inside the "
+        "true overlap that received a prior.",
+        "",
+        markdown_table(summary["priors"]),
+        "",
+        "![priors](priors.png)",
+        "",
+        "Per camera (calibrated poses): image, prior, ground truth, relative error.",
+        "",
+        "![bird's-eye view](bev_points.png)",
+        "",
+        "Priors of all cameras back-projected into the ego frame: with the dataset's noisy poses the ring "
+        "tears apart; after calibration the cameras agree.",
+        "",
+        "## Depth network with the prior",
+        "",
+        markdown_table(summary["network"]),
+        "",
+        "## Export",
+        "",
+        f"`{summary['export']['path']}`: {summary['export']['comparisons']} onnxruntime-vs-torch comparisons, "
+        f"max abs difference {summary['export']['max_abs_diff']:.2e} m.",
+        "",
+        "## Time per stage (s)",
+        "",
+        markdown_table([summary["seconds"]]),
+        "",
+    ]
+    return "\n".join(lines)
