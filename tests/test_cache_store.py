@@ -267,6 +267,13 @@ def test_not_a_cache_is_refused_with_one_line(tmp_path):
     (tmp_path / "photos" / "a.txt").write_text("x")
     with pytest.raises(InputError, match="exists and is not a prior cache"):
         build(tiny_rig(1), tmp_path / "photos")
+    assert (tmp_path / "photos" / "a.txt").read_text() == "x"  # refused, never wiped
+    fsspec = pytest.importorskip("fsspec")
+    url = f"memory://sgde-test-{uuid.uuid4().hex}/data"
+    fsspec.filesystem("memory").pipe(url.removeprefix("memory://") + "/keep.bin", b"keep")
+    with pytest.raises(InputError, match="exists and is not a prior cache"):
+        build(tiny_rig(1), url)
+    assert fsspec.filesystem("memory").cat(url.removeprefix("memory://") + "/keep.bin") == b"keep"
     with pytest.raises(InputError, match="prior cache does not exist"):
         PriorCache(tmp_path / "nothing")
     with pytest.raises(InputError, match="not a prior cache"):

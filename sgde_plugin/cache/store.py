@@ -171,17 +171,19 @@ def _prepare_root(store: Store, location: Any, parts: Mapping[str, Any]) -> zarr
     try:
         root = zarr.open_group(store, mode="r+", zarr_format=3)
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError):
-        if isinstance(store, zarr.storage.LocalStore) and Path(store.root).exists():
-            # an empty folder, or one holding only a temporary file of an interrupted creation, is fine
-            if any(not p.name.endswith(".partial") for p in Path(store.root).iterdir()):
-                raise InputError(location_name(location), None, "exists and is not a prior cache") from None
+        if isinstance(store, zarr.storage.LocalStore) and Path(store.root).is_dir():
+            for leftover in Path(store.root).glob("*.partial"):  # of an interrupted creation
+                leftover.unlink(missing_ok=True)
         attrs = {
             "format": CACHE_FORMAT,
             "config": parts["config_document"],
             "config_fingerprint": parts["config"],
             "sgde_version": __version__,
         }
-        return zarr.open_group(store, mode="w", zarr_format=3, attributes=attrs)
+        try:  # "w-" never deletes anything: a location holding other data is refused
+            return zarr.open_group(store, mode="w-", zarr_format=3, attributes=attrs)
+        except FileExistsError:
+            raise InputError(location_name(location), None, "exists and is not a prior cache") from None
     attrs = dict(root.attrs)
     if attrs.get("format") != CACHE_FORMAT:
         raise InputError(location_name(location), "format", f"expected {CACHE_FORMAT!r}, found {attrs.get('format')!r}")
