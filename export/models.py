@@ -20,6 +20,7 @@ Inputs and outputs (stable names; B = batch, dynamic; N = cameras, dynamic for `
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -86,7 +87,7 @@ class ExportSpec:
     dynamic_axes: dict[str, dict[int, str]]
     metadata: dict[str, str]
     random_inputs: Callable[[int, int], tuple[Tensor, ...]]  # (batch, seed) -> inputs
-    synthetic_inputs: Callable[[int], tuple[Tensor, ...]]  # batch -> a generated frame
+    synthetic_inputs: Callable[[int], tuple[str, tuple[Tensor, ...]]]  # batch -> (source label, inputs)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -151,6 +152,45 @@ def _sparse_prior(shape: tuple[int, ...], g: torch.Generator, max_depth: float, 
     depth = 1.0 + torch.rand(shape, generator=g) * (max_depth - 1.0)
     keep = torch.rand(shape, generator=g) < fill
     return torch.where(keep, depth, torch.zeros_like(depth))
+
+
+RENDER_SCALE = 0.11  # nuScenes preset at 176 x 99 pixels: a few seconds of ray casting
+
+
+@functools.lru_cache(maxsize=2)
+def rendered_frame(seed: int = 0, scale: float = RENDER_SCALE) -> tuple[Tensor, Tensor] | None:
+    """One frame of the synthetic nuScenes-like rig: RGB [6, 3, h, w] in [0, 1] and depth [6, h, w] (m, 0 = none).
+
+    Rendered with ``sgde_plugin.synth`` (cached per process); None when that renderer is unavailable.
+    """
+    try:
+        from sgde_plugin.synth.sequence import synth_sequence
+    except ImportError:
+        return None
+    seq = synth_sequence("nuscenes", frames=1, seed=seed, scale=scale)
+    fid = sorted(seq.images)[0]
+    names = [c.name for c in seq.rig_true.cameras]
+    rgb = torch.stack([torch.from_numpy(seq.images[fid][n]).permute(2, 0, 1).float() / 255.0 for n in names])
+    depth = torch.stack([torch.from_numpy(seq.depths[fid][n]).float() for n in names])
+    return rgb, depth
+
+
+def _overlap_band_prior(depth: Tensor, fraction: float = 0.2) -> Tensor:
+    """Stand-in prior: the depth in the outer ``fraction`` of columns (where ring neighbours overlap), else 0."""
+    w = depth.shape[-1]
+    cols = torch.arange(w)
+    band = (cols < fraction * w) | (cols >= (1 - fraction) * w)
+    return torch.where(band, depth, torch.zeros_like(depth))
+
+
+def _rendered_cameras(batch_images: int) -> tuple[Tensor, Tensor] | None:
+    """``batch_images`` camera images of the rendered frame (cycling through its six cameras) and their depths."""
+    frame = rendered_frame()
+    if frame is None:
+        return None
+    rgb, depth = frame
+    idx = torch.arange(batch_images) % rgb.shape[0]
+    return rgb[idx], depth[idx]
 
 
 def generated_image_and_prior(batch: int, height: int, width: int, cams: int = 1) -> tuple[Tensor, Tensor]:
@@ -240,8 +280,14 @@ def build_r18(checkpoint: str | Path | None = None, image_size: tuple[int, int] 
         g = _generator(seed)
         return torch.rand(batch, 3, h, w, generator=g), _sparse_prior((batch, 1, h, w), g, prior_max)
 
-    def synthetic_inputs(batch: int) -> tuple[Tensor, Tensor]:
-        return generated_image_and_prior(batch, h, w)
+    def synthetic_inputs(batch: int) -> tuple[str, tuple[Tensor, Tensor]]:
+        cams = _rendered_cameras(batch)
+        if cams is None:
+            return "generated", generated_image_and_prior(batch, h, w)
+        rgb, depth = cams
+        ch, cw = (rgb.shape[-2] // 32) * 32, (rgb.shape[-1] // 32) * 32  # the net wants multiples of 32
+        rgb, depth = rgb[..., :ch, :cw], depth[..., :ch, :cw]
+        return f"rendered {ch}x{cw}", (rgb.contiguous(), _overlap_band_prior(depth).unsqueeze(1).contiguous())
 
     metadata = _common_metadata("r18", net, info) | {
         "sgde.inputs": json.dumps({"image": "float32 [B,3,H,W] RGB in [0,1], NCHW",
@@ -301,13 +347,21 @@ def build_bevdepth(
         intr[..., :2, :3] *= 1.0 + 0.05 * torch.randn(batch, cams, 1, 1, generator=g)
         return feats, prior, intr, ida, s2e, bda
 
-    def synthetic_inputs(batch: int) -> tuple[Tensor, ...]:
-        image, prior = generated_image_and_prior(batch, h, w, cams)
+    def synthetic_inputs(batch: int) -> tuple[str, tuple[Tensor, ...]]:
+        rendered = _rendered_cameras(batch * cams)
+        if rendered is None:
+            label = "generated"
+            image, prior = generated_image_and_prior(batch, h, w, cams)
+        else:
+            label = "rendered"
+            image = torch.nn.functional.interpolate(rendered[0], size=(h, w), mode="bilinear", align_corners=False)
+            depth = torch.nn.functional.interpolate(rendered[1][:, None], size=(h, w), mode="nearest")
+            prior = _overlap_band_prior(depth)
         # stand-in backbone: average colour per 16x16 cell, tiled over the feature channels
         cells = torch.nn.functional.avg_pool2d(image, s)
         reps = math.ceil(cin / 3)
         feats = (cells.repeat(1, reps, 1, 1)[:, :cin] - 0.5) * 4.0
-        return (feats, prior.reshape(batch, cams, h, w), *mats_tuple(batch))
+        return label, (feats, prior.reshape(batch, cams, h, w), *mats_tuple(batch))
 
     metadata = _common_metadata("bevdepth", net, info) | {
         "sgde.inputs": json.dumps({

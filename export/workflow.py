@@ -20,11 +20,16 @@ CHECK_BATCHES = (1, 6)
 
 
 def parity_cases(spec: ExportSpec, batches: tuple[int, ...] = CHECK_BATCHES) -> list[tuple[str, int, list[Tensor]]]:
-    """Seeded random inputs and a generated frame at each batch size (plus another image size for r18)."""
+    """Seeded random inputs and a synthetic frame at each batch size (plus another image size for r18).
+
+    The synthetic frame is rendered by ``sgde_plugin.synth`` (labelled "rendered"), or generated
+    procedurally when the renderer is unavailable (labelled "generated").
+    """
     cases: list[tuple[str, int, list[Tensor]]] = []
     for i, b in enumerate(batches):
         cases.append(("random", b, list(spec.random_inputs(b, 1000 + i))))
-        cases.append(("generated", b, list(spec.synthetic_inputs(b))))
+        label, inputs = spec.synthetic_inputs(b)
+        cases.append((label, b, list(inputs)))
     if spec.name == "r18":
         h, w = spec.extra["image_size"]
         g_inputs = _resized_random(spec, 2, (h + 64, max(64, w - 128)))

@@ -30,8 +30,9 @@ def bev_spec():
 def test_r18_parity_batches_1_and_6_and_another_image_size(r18_spec, tmp_path):
     report = export_spec(r18_spec, tmp_path / "r18.onnx", check=True)
     res = report["parity"]
-    assert {(r.case, r.batch) for r in res} == {("random", 1), ("generated", 1), ("random", 6),
-                                                 ("generated", 6), ("random 128x64", 2)}
+    # the synthetic frame is the nuScenes-like rig rendered at 176x99, cropped to 96x160
+    assert {(r.case, r.batch) for r in res} == {("random", 1), ("rendered 96x160", 1), ("random", 6),
+                                                 ("rendered 96x160", 6), ("random 128x64", 2)}
     assert all(r.ok for r in res)
     assert max(r.max_abs_diff / r.output_range for r in res) <= 1e-4  # traced with batch 2 at 64x96
     model = onnx.load(str(tmp_path / "r18.onnx"))
@@ -45,6 +46,7 @@ def test_bevdepth_parity_and_metadata(bev_spec, tmp_path):
     path = tmp_path / "bev.onnx"
     report = export_spec(bev_spec, path, check=True)
     assert all(r.ok for r in report["parity"]) and len(report["parity"]) == 8
+    assert {r.case for r in report["parity"]} == {"random", "rendered"}
     assert max(r.relative_to_range for r in report["parity"]) <= 1e-4
     meta = read_metadata(path)
     assert json.loads(meta["sgde.depth_range"]) == [2.0, 58.0, 0.5]
@@ -82,3 +84,15 @@ def test_a_mismatch_is_an_error_with_numbers(bev_spec, tmp_path):
         check_parity(path, changed, [("random", 1, bev_spec.random_inputs(1, 5))], bev_spec.input_names,
                      bev_spec.output_names)
     assert "FAIL" in str(err.value) and err.value.results[0].max_abs_diff > 1e-3
+
+
+def test_generated_frame_stands_in_when_the_renderer_is_missing(bev_spec, monkeypatch):
+    from sgde_plugin.export import models
+
+    monkeypatch.setattr(models, "rendered_frame", lambda: None)
+    label, inputs = bev_spec.synthetic_inputs(2)
+    label2, again = bev_spec.synthetic_inputs(2)
+    assert label == label2 == "generated"
+    assert all(torch.equal(a, b) for a, b in zip(inputs, again))  # deterministic
+    prior = inputs[1]
+    assert prior.shape == (2, 6, 32, 64) and 0.0 < (prior > 0).float().mean().item() < 0.4
