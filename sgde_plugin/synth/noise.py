@@ -61,15 +61,15 @@ def sample_octaves(bank: NoiseBank, s: Tensor, t: Tensor, texel_m: float) -> Ten
 def octave_weights(footprint_m: Tensor, texel_m: float, octaves: int) -> Tensor:
     """Per-pixel weight of each octave: 1 while its lattice spacing is >= 3 footprints, 0 below 1 footprint."""
     spacing = texel_m * (2.0 ** torch.arange(octaves, dtype=footprint_m.dtype))
-    ratio = spacing[None, :] / footprint_m.clamp_min(1e-6)[:, None]
-    return ((ratio - 1.0) / 2.0).clamp(0.0, 1.0)
+    half_inv = 0.5 / footprint_m.clamp_min(1e-6)
+    return torch.clamp_(half_inv[:, None] * spacing[None, :] - 0.5, 0.0, 1.0)
 
 
 def fbm(bank: NoiseBank, s: Tensor, t: Tensor, footprint_m: Tensor, texel_m: float, gains: Tensor) -> Tensor:
     """Footprint-filtered sum of octaves: sum_c gains[c] * w_c * noise_c, zero mean."""
     n = sample_octaves(bank, s, t, texel_m)
     w = octave_weights(footprint_m, texel_m, bank.octaves)
-    return (n * w * gains[None, :]).sum(dim=1)
+    return (n.mul_(w) @ gains.to(n.dtype)).contiguous()
 
 
 def _stripe_integral(x: Tensor, period: float, width: float) -> Tensor:

@@ -178,49 +178,55 @@ def shade(world: World, t: Tensor, pid: Tensor, dirs: Tensor, pixel_angle: Tenso
     return out.reshape(*shape, 3)
 
 
+def _box_table(world: World, origin: np.ndarray, time_s: float) -> Tensor:
+    """Per-box float parameters packed for one gather: (N, 22).
+
+    Columns: camera origin in the box frame (0:3), cos/sin of -yaw (3:5), half sizes (5:8), centre
+    (8:11), texture offsets (11:13), colour (13:16), material params (16:22).
+    """
+    centers = world.box_centers(time_s)
+    c, s_ = np.cos(-world.box_yaw), np.sin(-world.box_yaw)
+    rel = origin[None, :] - centers
+    o_loc = np.stack([c * rel[:, 0] - s_ * rel[:, 1], s_ * rel[:, 0] + c * rel[:, 1], rel[:, 2]], axis=1)
+    table = np.concatenate([o_loc, c[:, None], s_[:, None], world.box_half, centers, world.box_tex_offset,
+                            world.box_color, world.box_params], axis=1)
+    return torch.from_numpy(table).float()
+
+
 def _shade_boxes(world: World, t: Tensor, j: Tensor, d: Tensor, pa: Tensor, origin: np.ndarray,
                  time_s: float) -> Tensor:
     j = j.long()
-    centers = world.box_centers(time_s)
-    yaw = world.box_yaw
-    c, s_ = np.cos(-yaw), np.sin(-yaw)
-    rel = origin[None, :] - centers
-    o_loc = np.stack([c * rel[:, 0] - s_ * rel[:, 1], s_ * rel[:, 0] + c * rel[:, 1], rel[:, 2]], axis=1)
-    o_loc_t = torch.from_numpy(o_loc).float()[j]
-    cj = torch.from_numpy(c).float()[j]
-    sj = torch.from_numpy(s_).float()[j]
+    q = _box_table(world, origin, time_s)[j]
+    cj, sj = q[:, 3], q[:, 4]
     dl = torch.stack([cj * d[:, 0] - sj * d[:, 1], sj * d[:, 0] + cj * d[:, 1], d[:, 2]], dim=1)
-    p = o_loc_t + t[:, None] * dl
-    half = torch.from_numpy(world.box_half).float()[j]
-    face = (p.abs() - half).argmax(dim=1)
+    p = q[:, 0:3] + t[:, None] * dl
+    face = (p.abs() - q[:, 5:8]).argmax(dim=1)
     sign = torch.sign(p.gather(1, face[:, None]))[:, 0]
     n_loc = torch.zeros_like(p).scatter_(1, face[:, None], sign[:, None])
     n = torch.stack([cj * n_loc[:, 0] + sj * n_loc[:, 1], -sj * n_loc[:, 0] + cj * n_loc[:, 1], n_loc[:, 2]], dim=1)
     f = _footprint(t, pa, (n * d).sum(1))
-    off = torch.from_numpy(world.box_tex_offset).float()[j]
-    cz = torch.from_numpy(centers[:, 2]).float()[j]
-    zw = p[:, 2] + cz  # height above the ground
+    zw = p[:, 2] + q[:, 10]  # height above the ground
     top = face == 2
-    s_coord = torch.where(face == 0, p[:, 1], p[:, 0]) + off[:, 0]
-    v_coord = torch.where(top, p[:, 1] + off[:, 1], zw)
+    s_coord = torch.where(face == 0, p[:, 1], p[:, 0]) + q[:, 11]
+    v_coord = torch.where(top, p[:, 1] + q[:, 12], zw)
     material = torch.from_numpy(world.box_material)[j]
-    colour = torch.from_numpy(world.box_color).float()[j]
+    colour = q[:, 13:16]
     albedo = torch.empty_like(p)
 
-    sel = torch.nonzero(material == FACADE).flatten()
+    is_facade = material == FACADE
+    sel = torch.nonzero(is_facade & ~top).flatten()
     if sel.numel():
-        params = torch.from_numpy(world.box_params).float()[j[sel]]
-        a = facade_albedo(world, s_coord[sel], v_coord[sel], f[sel], colour[sel], params)
-        roof = _ROOF * (1 + fbm(world.noise, s_coord[sel], v_coord[sel], f[sel], 0.02, _G_FINE)[:, None])
-        albedo[sel] = torch.where(top[sel][:, None], roof, a)
+        albedo[sel] = facade_albedo(world, s_coord[sel], v_coord[sel], f[sel], colour[sel], q[sel, 16:22])
+    sel = torch.nonzero(is_facade & top).flatten()
+    if sel.numel():
+        albedo[sel] = _ROOF * (1 + fbm(world.noise, s_coord[sel], v_coord[sel], f[sel], 0.02, _G_FINE)[:, None])
     sel = torch.nonzero((material == CAR_BODY) | (material == CAR_GLASS) | (material == TYRE)).flatten()
     if sel.numel():
         albedo[sel] = car_albedo(world, s_coord[sel], v_coord[sel], f[sel], colour[sel], material[sel], top[sel])
     sel = torch.nonzero(material == SIDEWALK).flatten()
     if sel.numel():
         # slabs are anchored to the world so joints run on across segments
-        cx = torch.from_numpy(centers[:, 0]).float()[j[sel]]
-        cy = torch.from_numpy(centers[:, 1]).float()[j[sel]]
+        cx, cy = q[sel, 8], q[sel, 9]
         xs = torch.where(top[sel], p[sel, 0] + cx, s_coord[sel] + cx)
         ys = torch.where(top[sel], p[sel, 1] + cy, zw[sel])
         albedo[sel] = sidewalk_albedo(world, xs, ys, f[sel], top[sel])
