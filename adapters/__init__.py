@@ -13,6 +13,7 @@ _EXPORTS = {
     "PriorDepthNet": "bevdepth",
     "PriorInjector": "bevdepth",
     "DepthToVoxelProposals": "voxformer",
+    "RigDepthToVoxelProposals": "voxformer",
     "VoxelGrid": "voxformer",
     "VOXFORMER_GRID": "voxformer",
     "OCC3D_NUSCENES_GRID": "voxformer",
