@@ -379,7 +379,7 @@ def build_bevdepth(
         "sgde.depth_bins": json.dumps({"d_bound": list(net.d_bound), "bins": net.depth_channels,
                                        "bin_k": "[start + k*step, start + (k+1)*step) metres"}),
         "sgde.prior_normalisation": json.dumps({
-            "scheme": "min non-zero per 16x16 cell, clip(prior_m / max_depth, 0, 1) + validity; 0 = no prior",
+            "scheme": f"min non-zero per {s}x{s} cell, clip(prior_m / max_depth, 0, 1) + validity; 0 = none",
             "max_depth": net.prior_encoder.encoding.max_depth, "validity_channel": True}),
         "sgde.cameras_per_sample": str(cams),
     }
