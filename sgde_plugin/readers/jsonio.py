@@ -149,12 +149,9 @@ def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] =
     try:
         index = 0
         for part, pieces in _object_chunks(path):
-            for i in _selected(part, pieces, select):
-                piece = pieces[i]
-                try:
-                    row = json.loads(piece[piece.index("{"):] + "}")
-                except json.JSONDecodeError as exc:
-                    raise InputError(path, f"element {index + i}", f"bad JSON ({exc.msg})") from None
+            kept = _selected(part, pieces, select)
+            texts = [pieces[i][pieces[i].index("{"):] + "}" for i in kept]
+            for row in _parse_rows(path, texts, [index + i for i in kept]):
                 result = reduce(row)
                 if result is not None:
                     out.append(result)
@@ -170,6 +167,23 @@ def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] =
         if result is not None:
             out.append(result)
     return out
+
+
+def _parse_rows(path: Path, texts: list[str], indices: list[int]) -> list:
+    """Parse object texts in one call; on an error, one by one to name the bad element."""
+    try:
+        rows = json.loads("[" + ",".join(texts) + "]")
+        if len(rows) == len(texts):
+            return rows
+    except json.JSONDecodeError:
+        pass
+    rows = []
+    for index, text in zip(indices, texts):
+        try:
+            rows.append(json.loads(text))
+        except json.JSONDecodeError as exc:
+            raise InputError(path, f"element {index}", f"bad JSON ({exc.msg})") from None
+    return rows
 
 
 def _selected(part: str, pieces: list[str], select: list[Select]) -> list[int]:

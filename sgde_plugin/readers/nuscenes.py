@@ -85,6 +85,22 @@ def _pose(row: dict, file: Path, where: str) -> np.ndarray:
     return make_transform(quaternion_to_rotation(q), number_list(row, "translation", 3, file, where))
 
 
+def _poses(rows: list[tuple[str, dict]], file: Path) -> dict[str, np.ndarray]:
+    """token -> 4x4 of many pose rows, checked at once (row by row only to name a bad one)."""
+    try:
+        q = np.array([r["rotation"] for _, r in rows], dtype=np.float64)
+        t = np.array([r["translation"] for _, r in rows], dtype=np.float64)
+        ok = q.shape == (len(rows), 4) and t.shape == (len(rows), 3)
+        ok = ok and bool(np.isfinite(q).all() and np.isfinite(t).all())
+        ok = ok and bool((np.abs(np.linalg.norm(q, axis=1) - 1.0) <= QUATERNION_TOL).all())
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        for token, row in rows:
+            _pose(row, file, f"[token={token}]")
+    return {token: make_transform(quaternion_to_rotation(qi), ti) for (token, _), qi, ti in zip(rows, q, t)}
+
+
 @dataclass
 class _Scene:
     token: str
@@ -212,11 +228,10 @@ class NuScenesTables:
 
         def reduce(row: dict) -> tuple | None:
             token = row.get("token")
-            if token not in needed:
-                return None
-            return token, _pose(row, path, f"[token={token}]")
+            return (token, row) if token in needed else None
 
-        self._ego: dict[str, np.ndarray] = dict(scan_table(path, reduce, [(_TOKEN_RE, needed, True)]))
+        rows = scan_table(path, reduce, [(_TOKEN_RE, needed, True)])
+        self._ego: dict[str, np.ndarray] = _poses(rows, path)
 
     # --- rigs --------------------------------------------------------------------------------
     def scene_names(self) -> list[str]:
@@ -242,11 +257,10 @@ class NuScenesTables:
             cameras.append(self._camera(sc, channel, chan_rows))
             chan_rows.sort(key=lambda r: r[_TIME])
 
-        key_rows = {(r[_SAMPLE], r[_CHANNEL]): r for r in rows if r[_KEY] is True}
-        frames: list[tuple[str, dict[str, tuple]]] = []
         if not sc.samples:
             raise InputError(self.dir / "sample.json", f"scene {sc.name}", "has no samples")
-        keyframe_of = {}
+        key_rows = {(r[_SAMPLE], r[_CHANNEL]): r for r in rows if r[_KEY] is True}
+        keyframe_of: dict[str, tuple[str, dict[str, tuple]]] = {}  # CAM_FRONT token -> (frame id, rows)
         for _, sample in sc.samples:
             chosen = {}
             for channel in RING:
@@ -255,9 +269,9 @@ class NuScenesTables:
                     raise InputError(data_path, f"sample {sample}", f"camera {channel} is missing (no key frame)")
                 chosen[channel] = r
             keyframe_of[chosen[REFERENCE][_TOKEN]] = (sample, chosen)
-        if not self.sweeps:
-            frames = list(keyframe_of.values())
-        else:
+        frames = list(keyframe_of.values())
+        if self.sweeps:
+            frames = []
             times = {c: [r[_TIME] for r in by_channel[c]] for c in RING}
             for r in by_channel[REFERENCE]:
                 if r[_TOKEN] in keyframe_of:
