@@ -4,14 +4,13 @@ For every pixel of the original camera: its ray, the rectified pixel on that ray
 centre, so no occlusion can arise from the re-projection itself), the disparity there, and the
 depth in the camera's own convention (z for pinholes, range for fisheyes):
 depth = k * f * B / disparity with k = (depth of the point) / (rectified z of the point), a
-per-pixel constant precomputed once per rig. Disparities are interpolated bilinearly only where
-the four neighbours are valid and agree; across depth edges the nearest one is taken, so no
-depths are invented between foreground and background.
+per-pixel constant precomputed once per rig. Disparities are interpolated bilinearly, but only
+from four valid neighbours: pixels next to a disparity jump are dropped first, so no depths are
+invented between foreground and background.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -19,8 +18,10 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
+from .rectify import torch_threads
 
 _ROW = 1024  # sample positions are laid out in rows of this length for cv2.remap
+_SENTINEL = -1.0e5  # disparity of "no value"; any bilinear weight >= 1/32 on it gives a negative sample
 
 
 @dataclass(frozen=True, eq=False)
@@ -29,8 +30,8 @@ class BackProjection:
 
     shape: tuple[int, int]  # (H, W) of the original camera
     index: np.ndarray  # flat indices of the original pixels that land in the rectified canvas
-    map_x: np.ndarray  # (rows, _ROW) float32 rectified x of those pixels (padded)
-    map_y: np.ndarray
+    map1: np.ndarray  # fixed-point cv2.remap maps (rows x _ROW) of their rectified positions (padded)
+    map2: np.ndarray
     kfb: np.ndarray  # (N,) float32: depth = kfb / disparity
 
     @property
@@ -39,45 +40,73 @@ class BackProjection:
         return int(self.index.shape[0])
 
     def sample(
-        self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 0.5
+        self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 1.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Disparity (N,), confidence (N,) and validity (N,) at the covered pixels, edge-aware."""
+        """Disparity (N,), confidence (N,) and validity (N,) at the covered pixels, edge-aware.
+
+        Invalid pixels, and both pixels of every horizontal or vertical neighbour pair whose
+        disparities differ by more than `edge_px`, get a large negative sentinel; a bilinear sample
+        that touches one comes out negative and is dropped. One remap does the whole job.
+        """
         n = self.count
-        valid = (confidence > 0).astype(np.float32)
-        filled = np.where(valid > 0, disparity, 0).astype(np.float32)
-        stack = cv2.merge([filled, valid])
-        lin = cv2.remap(stack, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        near = cv2.merge([filled, confidence.astype(np.float32)])
-        nn = cv2.remap(near, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        d_lin = lin[..., 0].reshape(-1)[:n]
-        v_lin = lin[..., 1].reshape(-1)[:n]
-        d_nn = nn[..., 0].reshape(-1)[:n]
-        c_nn = nn[..., 1].reshape(-1)[:n]
-        smooth = (v_lin > 0.999) & (np.abs(d_lin - d_nn) <= edge_px)
-        d = np.where(smooth, d_lin, d_nn)
-        ok = (c_nn > 0) & (d > 0)
-        return d, np.where(ok, c_nn, 0).astype(np.float32), ok
+        d = np.where(confidence > 0, disparity, _SENTINEL).astype(np.float32)
+        ok = confidence > 0
+        jump_x = ok[:, 1:] & ok[:, :-1] & (np.abs(d[:, 1:] - d[:, :-1]) > edge_px)
+        jump_y = ok[1:] & ok[:-1] & (np.abs(d[1:] - d[:-1]) > edge_px)
+        edge = np.zeros_like(ok)
+        edge[:, 1:] |= jump_x
+        edge[:, :-1] |= jump_x
+        edge[1:] |= jump_y
+        edge[:-1] |= jump_y
+        d[edge] = _SENTINEL
+        stack = cv2.merge([d, confidence.astype(np.float32)])
+        out = cv2.remap(stack, self.map1, self.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=(_SENTINEL, 0.0, 0.0, 0.0))
+        dd = out[..., 0].reshape(-1)[:n]
+        cc = out[..., 1].reshape(-1)[:n]
+        valid = dd > 0
+        return dd, np.where(valid, cc, 0).astype(np.float32), valid
+
+    def values(
+        self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(flat pixel indices, depth in the camera's convention, confidence) of the pixels that got a value."""
+        d, c, ok = self.sample(disparity, confidence)
+        z = np.where(ok, self.kfb / np.where(ok, d, 1), 0)
+        ok &= (z >= min_depth) & (z <= max_depth)
+        return self.index[ok], z[ok].astype(np.float32), c[ok]
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """Full-size depth (camera convention) and confidence maps; 0 where there is no value."""
-        d, c, ok = self.sample(disparity, confidence)
-        z = np.where(ok, self.kfb / np.where(ok, d, 1), 0)
-        ok &= (z >= min_depth) & (z <= max_depth)
+        idx, z, c = self.values(disparity, confidence, min_depth, max_depth)
         depth = np.zeros(self.shape[0] * self.shape[1], np.float32)
         conf = np.zeros_like(depth)
-        depth[self.index[ok]] = z[ok]
-        conf[self.index[ok]] = c[ok]
+        depth[idx] = z
+        conf[idx] = c
         return depth.reshape(self.shape), conf.reshape(self.shape)
 
 
-def backprojection(camera: Camera, rect: Camera, baseline_m: float, rays: torch.Tensor | None = None,
-                   ray_valid: torch.Tensor | None = None) -> BackProjection:
+def backprojection(
+    camera: Camera, rect: Camera, baseline_m: float, x_range: tuple[int, int] | None = None,
+    rays: torch.Tensor | None = None, ray_valid: torch.Tensor | None = None,
+) -> BackProjection:
     """Backward map of `camera` into the rectified pinhole `rect` (same optical centre).
 
-    `rays`/`ray_valid` may pass the camera's precomputed `ray_grid()` to share it between pairs.
+    Only pixels landing in canvas columns `x_range` = [x0, x1) are kept, and their rectified x is
+    stored relative to x0 (disparity maps of the core columns). `rays`/`ray_valid` may pass the
+    camera's precomputed `ray_grid()` to share it between pairs.
     """
+    x0, x1 = (0, rect.width) if x_range is None else x_range
+    with torch_threads(1):
+        return _backprojection(camera, rect, baseline_m, x0, x1, rays, ray_valid)
+
+
+def _backprojection(
+    camera: Camera, rect: Camera, baseline_m: float, x0: int, x1: int, rays: torch.Tensor | None,
+    ray_valid: torch.Tensor | None,
+) -> BackProjection:
     if rays is None or ray_valid is None:
         rays, ray_valid = camera.intrinsics.ray_grid()
     R = torch.as_tensor(rect.sensor_to_ego[:3, :3].T @ camera.sensor_to_ego[:3, :3], dtype=rays.dtype)
@@ -88,7 +117,7 @@ def backprojection(camera: Camera, rect: Camera, baseline_m: float, rays: torch.
     zq = torch.where(front, q[:, 2], torch.ones_like(q[:, 2]))
     u = K[0, 0] * q[:, 0] / zq + K[0, 2]
     v = K[1, 1] * q[:, 1] / zq + K[1, 2]
-    inside = front & ray_valid.reshape(-1) & (u >= 0) & (u <= rect.width - 1) & (v >= 0) & (v <= rect.height - 1)
+    inside = front & ray_valid.reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= rect.height - 1)
     index = torch.nonzero(inside).reshape(-1)
     # point = ray * t with t * q_z = rectified z; depth = t (range) or t * r_z (pinhole z)
     k = 1.0 / zq[index]
@@ -98,40 +127,43 @@ def backprojection(camera: Camera, rect: Camera, baseline_m: float, rays: torch.
     rows = max(1, -(-n // _ROW))
     map_x = np.full(rows * _ROW, -1.0, np.float32)
     map_y = np.full(rows * _ROW, -1.0, np.float32)
-    map_x[:n] = u[index].numpy()
+    map_x[:n] = u[index].numpy() - x0
     map_y[:n] = v[index].numpy()
+    map1, map2 = cv2.convertMaps(map_x.reshape(rows, _ROW), map_y.reshape(rows, _ROW), cv2.CV_16SC2)
     return BackProjection(
         shape=(camera.height, camera.width),
         index=index.numpy().astype(np.int64),
-        map_x=map_x.reshape(rows, _ROW),
-        map_y=map_y.reshape(rows, _ROW),
+        map1=map1,
+        map2=map2,
         kfb=(k.numpy() * K[0, 0] * baseline_m).astype(np.float32),
     )
 
 
-def fuse_priors(
-    maps: Sequence[tuple[np.ndarray, np.ndarray]], agree_rel: float = 0.05
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fuse several (depth, confidence) maps of one camera into one.
+def fuse_into(
+    depth: np.ndarray, conf: np.ndarray, index: np.ndarray, z: np.ndarray, c: np.ndarray, agree_rel: float = 0.05
+) -> None:
+    """Fuse sparse values (flat `index`, depth `z`, confidence `c`) into a camera's maps, in place.
 
-    Where several have a value and agree within `agree_rel`, the confidence-weighted mean is taken
-    and the confidence becomes 1 - prod(1 - c); where they disagree the most confident one wins,
-    with its confidence halved.
+    Where the map is empty the new value is taken. Where both have a value and agree within
+    `agree_rel`, the confidence-weighted mean is taken and the confidence becomes 1 - prod(1 - c);
+    where they disagree the more confident one wins with its confidence halved.
     """
-    if not maps:
-        raise ValueError("nothing to fuse")
-    depth = maps[0][0].astype(np.float32).copy()
-    conf = maps[0][1].astype(np.float32).copy()
-    for d2, c2 in maps[1:]:
-        has1, has2 = conf > 0, c2 > 0
-        both = has1 & has2
-        only2 = has2 & ~has1
-        depth[only2], conf[only2] = d2[only2], c2[only2]
-        if both.any():
-            a, ca, b, cb = depth[both], conf[both], d2[both], c2[both]
-            agree = np.abs(a - b) <= agree_rel * np.minimum(a, b)
-            mean = (a * ca + b * cb) / (ca + cb)
-            pick_b = cb > ca
-            depth[both] = np.where(agree, mean, np.where(pick_b, b, a))
-            conf[both] = np.where(agree, 1 - (1 - ca) * (1 - cb), 0.5 * np.maximum(ca, cb))
-    return depth, conf
+    flat_d, flat_c = depth.reshape(-1), conf.reshape(-1)
+    if index.size == 0:
+        return
+    old_c = flat_c[index]
+    if not old_c.any():
+        flat_d[index] = z
+        flat_c[index] = c
+        return
+    old_d = flat_d[index]
+    both = old_c > 0
+    new_d, new_c = z.copy(), c.copy()
+    if both.any():
+        a, ca, b, cb = old_d[both], old_c[both], z[both], c[both]
+        agree = np.abs(a - b) <= agree_rel * np.minimum(a, b)
+        mean = (a * ca + b * cb) / (ca + cb)
+        new_d[both] = np.where(agree, mean, np.where(cb > ca, b, a))
+        new_c[both] = np.where(agree, 1 - (1 - ca) * (1 - cb), 0.5 * np.maximum(ca, cb))
+    flat_d[index] = new_d
+    flat_c[index] = new_c

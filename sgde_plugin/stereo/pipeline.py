@@ -19,9 +19,10 @@ import numpy as np
 from ..cameras import Camera
 from ..errors import InputError
 from ..rig import Rig
-from .backproject import BackProjection, backprojection, fuse_priors
+from .backproject import BackProjection, backprojection, fuse_into
+from .filters import grey_float, lr_check, photometric_scores, refine_disparity, remove_islands
 from .matchers import Matcher, SGBMMatcher, load_learned_matcher
-from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair
+from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair, torch_threads
 from .virtual import virtual_pinholes
 
 PRIOR_ALGO_VERSION = "1"
@@ -50,8 +51,11 @@ class PriorConfig:
     speckle_range: int = 2
     lr_max_diff: float = 1.0  # left-right consistency, rectified pixels
     border_px: int = 2  # matches this far (+ half a block) from an image border are dropped
-    refine_iterations: int = 2  # sub-pixel Gauss-Newton steps after matching (0 = off)
-    min_zncc: float = 0.5  # photometric check of each match (7x7 ZNCC after the shift)
+    refine_iterations: int = 1  # sub-pixel Gauss-Newton steps after matching (0 = off)
+    min_zncc: float = 0.5  # photometric check after the shift (7x7 windows): ZNCC above this,
+    max_abs_diff: float = 8.0  # mean absolute difference (grey levels) below this,
+    min_texture: float = 0.5  # RMS x-gradient (grey levels / px) above this (full confidence at 2x)
+    min_region_px: int = 200  # final speckle filter: smallest region of similar disparity kept
     color: bool = False  # match RGB instead of grey
     margin_px: int = 8
     max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
@@ -155,88 +159,6 @@ def _facing_half(fisheye: Camera, other: Camera) -> Camera:
     return max(halves, key=lambda h: float(h.sensor_to_ego[:3, 2] @ axis))
 
 
-def lr_check(
-    disp_a: np.ndarray, conf_a: np.ndarray, disp_b: np.ndarray, conf_b: np.ndarray, sign: int, max_diff: float
-) -> np.ndarray:
-    """Confidence of `disp_a` after the left-right check against `disp_b` (the other reference).
-
-    For a left reference (sign=-1) the match of column x is x - d; for a right reference (+1), x + d.
-    The check passes when the other map, at the matched column, agrees within `max_diff` pixels;
-    the confidence then falls off as a Gaussian of the disagreement.
-    """
-    h, w = disp_a.shape
-    cols = np.arange(w, dtype=np.float32)[None, :]
-    x = np.rint(cols + sign * disp_a).astype(np.intp)
-    inside = (x >= 0) & (x < w)
-    xc = np.clip(x, 0, w - 1)
-    other = np.take_along_axis(disp_b, xc, axis=1)
-    other_c = np.take_along_axis(conf_b, xc, axis=1)
-    diff = np.abs(disp_a - other)
-    ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
-    return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32)
-
-
-def _shift_maps(disp: np.ndarray, sign: int) -> tuple[np.ndarray, np.ndarray]:
-    h, w = disp.shape
-    map_x = np.arange(w, dtype=np.float32)[None, :] + sign * disp.astype(np.float32)
-    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
-    return map_x, map_y
-
-
-def _grey_float(image: np.ndarray) -> np.ndarray:
-    return image.astype(np.float32) if image.ndim == 2 else image.astype(np.float32).mean(axis=2)
-
-
-def refine_disparity(
-    image_a: np.ndarray, image_b: np.ndarray, disp_a: np.ndarray, valid: np.ndarray, sign: int,
-    iterations: int = 2, window: int = 5, max_step: float = 0.5,
-) -> np.ndarray:
-    """Sub-pixel refinement of `disp_a` by Gauss-Newton steps on the windowed photometric error.
-
-    SGBM's parabola fit pulls disparities towards integers ("pixel locking", up to 0.15 px); a
-    few offset-compensated Lucas-Kanade steps along the row, with `image_b` warped by each pixel's
-    own disparity (so slanted surfaces stay aligned), remove that bias.
-    """
-    a, b = _grey_float(image_a), _grey_float(image_b)
-    grad = cv2.filter2D(b, cv2.CV_32F, np.array([[-0.5, 0.0, 0.5]], np.float32), borderType=cv2.BORDER_REPLICATE)
-    d = disp_a.astype(np.float32).copy()
-    box = (window, window)
-    for _ in range(iterations):
-        map_x, map_y = _shift_maps(d, sign)
-        bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        j = sign * cv2.remap(grad, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        e = a - bw
-        mj, me = cv2.blur(j, box), cv2.blur(e, box)
-        num = cv2.blur(j * e, box) - mj * me
-        den = cv2.blur(j * j, box) - mj * mj
-        step = np.clip(num / np.maximum(den, 1e-3), -max_step, max_step)
-        ok = valid & (den > 1.0)
-        d[ok] += step[ok]
-    return np.where(valid, d, 0).astype(np.float32)
-
-
-def zncc(
-    image_a: np.ndarray, image_b: np.ndarray, disp_a: np.ndarray, sign: int, window: int = 7, min_std: float = 2.0
-) -> np.ndarray:
-    """Zero-mean normalised cross-correlation between `image_a` and `image_b` warped by `disp_a`.
-
-    `image_b` is sampled at column x + sign * d (bilinear), so a slanted surface is compared
-    after its own per-pixel shift; -1 where either patch is flat (std below `min_std` grey levels).
-    """
-    a, b = _grey_float(image_a), _grey_float(image_b)
-    map_x, map_y = _shift_maps(disp_a, sign)
-    bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    box = (window, window)
-    ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
-    va = cv2.blur(a * a, box) - ma * ma
-    vb = cv2.blur(bw * bw, box) - mb * mb
-    cov = cv2.blur(a * bw, box) - ma * mb
-    flat = (va < min_std**2) | (vb < min_std**2)
-    out = cov / np.sqrt(np.maximum(va * vb, 1e-6))
-    out[flat] = -1.0
-    return out
-
-
 class PriorBuilder:
     """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
 
@@ -247,8 +169,13 @@ class PriorBuilder:
         self.last_timings: dict[str, float] = {}
         self.plans: list[PairPlan] = []
         self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
+        with torch_threads(1):
+            self._plan()
+
+    def _plan(self) -> None:
+        """Rectified geometry, warp maps and backward maps of every pair."""
+        rig, cfg = self.rig, self.config
         rays = {}
-        cfg = self.config
         for a, b in rig.pairs:
             cam_a, cam_b = rig.camera(a), rig.camera(b)
             src_a, src_b = cam_a, cam_b
@@ -272,7 +199,7 @@ class PriorBuilder:
                     camera=orig.name,
                     pre=pre,
                     rect=WarpMaps.between(src, rect, default_rim_px(src)),
-                    back=backprojection(orig, rect, pair.baseline_m, *rays[orig.name]),
+                    back=backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name]),
                 ))
             self.plans.append(PairPlan(pair, sides[0], sides[1]))
 
@@ -299,43 +226,45 @@ class PriorBuilder:
     def match_pair(
         self, plan: PairPlan, left: np.ndarray, right: np.ndarray, valid_l: np.ndarray, valid_r: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-        """Left- and right-referenced disparity and confidence on the canvas, and the seconds spent matching."""
+        """Left- and right-referenced disparity and confidence over the core columns, and the matching seconds.
+
+        The left reference is matched on canvas columns [0, x1) (the left padding gives every core
+        pixel its full search range), the right reference on the mirrored columns [x0, W).
+        """
+        cfg = self.config
         D = plan.pair.max_disparity
-        x1 = plan.pair.core_x[1]
-        h, w = left.shape[:2]
+        x0, x1 = plan.pair.core_x
+        wc = x1 - x0
         t0 = time.perf_counter()
         dl, cl = self.matcher.match(left[:, :x1], right[:, :x1], D)
         dr_f, cr_f = self.matcher.match(
-            np.ascontiguousarray(right[:, D:][:, ::-1]), np.ascontiguousarray(left[:, D:][:, ::-1]), D
+            np.ascontiguousarray(right[:, x0:][:, ::-1]), np.ascontiguousarray(left[:, x0:][:, ::-1]), D
         )
         t_match = time.perf_counter() - t0
-        disp_l = np.zeros((h, w), np.float32)
-        conf_l = np.zeros((h, w), np.float32)
-        disp_r = np.zeros((h, w), np.float32)
-        conf_r = np.zeros((h, w), np.float32)
-        disp_l[:, :x1], conf_l[:, :x1] = dl, cl
-        disp_r[:, D:], conf_r[:, D:] = dr_f[:, ::-1], cr_f[:, ::-1]
-        # a match must start and land on pixels the cameras see (eroded against the black border)
-        r = self.config.block_size // 2 + self.config.border_px
+        disp_l, conf_l = dl[:, x0:], cl[:, x0:].copy()
+        disp_r, conf_r = np.ascontiguousarray(dr_f[:, ::-1][:, :wc]), cr_f[:, ::-1][:, :wc].copy()
+        # a match must start on a pixel its camera sees, away from the black border
+        r = cfg.block_size // 2 + cfg.border_px
         k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-        vl = cv2.erode(valid_l.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        vr = cv2.erode(valid_r.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-        conf_l[~vl] = 0
-        conf_r[~vr] = 0
-        if self.config.refine_iterations > 0:
-            it = self.config.refine_iterations
-            disp_l = refine_disparity(left, right, disp_l, conf_l > 0, -1, it)
-            disp_r = refine_disparity(right, left, disp_r, conf_r > 0, +1, it)
-        conf_l2 = lr_check(disp_l, conf_l, disp_r, conf_r, -1, self.config.lr_max_diff)
-        conf_r2 = lr_check(disp_r, conf_r, disp_l, conf_l, +1, self.config.lr_max_diff)
-        # photometric check after the per-pixel shift: catches consistent but wrong matches, e.g. of
+        for conf, valid in ((conf_l, valid_l), (conf_r, valid_r)):
+            inner = cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+            conf[inner[:, x0:x1] == 0] = 0
+        lf, rf = grey_float(left), grey_float(right)
+        lc, rc = lf[:, x0:x1], rf[:, x0:x1]
+        if cfg.refine_iterations > 0:
+            disp_l = refine_disparity(lc, rf, disp_l, conf_l > 0, -1, x0, cfg.refine_iterations)
+            disp_r = refine_disparity(rc, lf, disp_r, conf_r > 0, +1, x0, cfg.refine_iterations)
+        conf_l2 = lr_check(disp_l, conf_l, disp_r, conf_r, -1, cfg.lr_max_diff)
+        conf_r2 = lr_check(disp_r, conf_r, disp_l, conf_l, +1, cfg.lr_max_diff)
+        # photometric checks after the per-pixel shift catch consistent but wrong matches, e.g. of
         # points whose true match has left the other image
-        t = self.config.min_zncc
-        for conf, ncc in ((conf_l2, zncc(left, right, disp_l, -1)), (conf_r2, zncc(right, left, disp_r, +1))):
-            conf *= np.clip((ncc - t) / (1 - t), 0, 1)
-        # small disparities (far points) give uncertain depth
-        conf_l2 *= disp_l / (disp_l + 2.0)
-        conf_r2 *= disp_r / (disp_r + 2.0)
+        t, m = cfg.min_zncc, cfg.max_abs_diff
+        for conf, a, b, disp, sign in ((conf_l2, lc, rf, disp_l, -1), (conf_r2, rc, lf, disp_r, +1)):
+            ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
+            conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
+            conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)  # rows without x-structure are ambiguous
+            conf *= disp / (disp + 2.0)  # small disparities (far points) give uncertain depth
+            remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
     def build(
@@ -346,7 +275,7 @@ class PriorBuilder:
         cfg = self.config
         masks = dict(self._static_masks) if masks is None else dict(masks)
         grey = self._prepare(images)
-        per_camera: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {c: [] for c in self.rig.camera_names}
+        out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
         t_match = t_warp = t_back = 0.0
         for plan in self.plans:
             t0 = time.perf_counter()
@@ -358,23 +287,16 @@ class PriorBuilder:
             disp_l, conf_l, disp_r, conf_r, tm = self.match_pair(plan, left, right, valid_l, valid_r)
             t_match += tm
             t0 = time.perf_counter()
-            per_camera[plan.left.camera].append(plan.left.back.depth(disp_l, conf_l, cfg.min_depth, cfg.max_depth))
-            per_camera[plan.right.camera].append(plan.right.back.depth(disp_r, conf_r, cfg.min_depth, cfg.max_depth))
+            for side, disp, conf in ((plan.left, disp_l, conf_l), (plan.right, disp_r, conf_r)):
+                prior = out[side.camera]
+                fuse_into(prior.depth, prior.confidence, *side.back.values(disp, conf, cfg.min_depth, cfg.max_depth))
             t_back += time.perf_counter() - t0
         t0 = time.perf_counter()
-        out: dict[str, PriorMap] = {}
-        for cam in self.rig.cameras:
-            maps = per_camera[cam.name]
-            if not maps:
-                out[cam.name] = PriorMap.empty(cam.height, cam.width)
-                continue
-            depth, conf = fuse_priors(maps)
-            mask = masks.get(cam.name)
+        for name, prior in out.items():
+            mask = masks.get(name)
             if mask is not None:
-                depth[~mask] = 0
-            conf[depth <= 0] = 0
-            depth[conf <= 0] = 0
-            out[cam.name] = PriorMap(depth, conf)
+                prior.depth[~mask] = 0
+                prior.confidence[~mask] = 0
         t_back += time.perf_counter() - t0
         self.last_timings = {
             "warp": t_warp, "match": t_match, "backproject": t_back, "total": time.perf_counter() - t_start,
@@ -382,4 +304,4 @@ class PriorBuilder:
         return out
 
 
-__all__ = ["PRIOR_ALGO_VERSION", "PairPlan", "PriorBuilder", "PriorConfig", "PriorMap", "lr_check"]
+__all__ = ["PRIOR_ALGO_VERSION", "PairPlan", "PriorBuilder", "PriorConfig", "PriorMap"]

@@ -12,6 +12,8 @@ the source camera model (pinhole, Kannala-Brandt or ocam), so there is no double
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import cv2
@@ -22,6 +24,22 @@ from ..cameras import Camera, Pinhole
 from ..pairs import left_right
 
 DISPARITY_STEP = 16  # SGBM wants a multiple of 16
+
+
+@contextmanager
+def torch_threads(n: int = 1) -> Iterator[None]:
+    """Run a block with `n` torch intra-op threads (restored afterwards).
+
+    The camera maths here is element-wise on arrays of a few hundred thousand values: threads
+    gain little, and on a busy machine (or next to other worker processes) OpenMP threads that
+    wait for each other can make it tens of times slower.
+    """
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,14 +166,26 @@ def rectify_pair(
     max_elevation_deg: float = 50.0,
     samples: int = 241,
 ) -> RectifiedPair | None:
-    """Rectified geometry of an adjacent pair (order-free), or None if the cameras share no sector.
+    """Rectified geometry of an adjacent pair (order-free), or None if the pair cannot give stereo.
 
+    None when the cameras share no sector, share a centre, or look along their baseline.
     The focal length is `scale` times the mean angular resolution (px/rad) of the two source
     cameras at the rectified viewing direction; the search range is min(f B / min_depth, widest
     possible disparity of the shared sector), rounded up to a multiple of 16.
     """
+    with torch_threads(1):
+        return _rectify_pair(cam_a, cam_b, scale, min_depth, margin_px, max_azimuth_deg, max_elevation_deg, samples)
+
+
+def _rectify_pair(
+    cam_a: Camera, cam_b: Camera, scale: float, min_depth: float, margin_px: int, max_azimuth_deg: float,
+    max_elevation_deg: float, samples: int,
+) -> RectifiedPair | None:
     left, right = left_right(cam_a, cam_b)
-    R = rectified_rotation(left, right)
+    try:
+        R = rectified_rotation(left, right)
+    except ValueError:  # co-located, or looking along the baseline: no stereo from this pair
+        return None
     baseline = float(np.linalg.norm(right.sensor_to_ego[:3, 3] - left.sensor_to_ego[:3, 3]))
     box = _shared_sector(left, right, R, math.radians(max_azimuth_deg), math.radians(max_elevation_deg), samples)
     if box is None:
@@ -202,9 +232,10 @@ def camera_maps(
     rotation between them matters. With `rim_px` > 0, source pixels closer than that to the
     border of the source's valid area (the fisheye rim) count as invalid.
     """
-    rays, ok = dst.intrinsics.ray_grid(dtype)
-    R = torch.as_tensor(src.sensor_to_ego[:3, :3].T @ dst.sensor_to_ego[:3, :3], dtype=dtype)
-    uv, valid = src.intrinsics.project_torch(rays @ R.T)
+    with torch_threads(1):
+        rays, ok = dst.intrinsics.ray_grid(dtype)
+        R = torch.as_tensor(src.sensor_to_ego[:3, :3].T @ dst.sensor_to_ego[:3, :3], dtype=dtype)
+        uv, valid = src.intrinsics.project_torch(rays @ R.T)
     valid = valid & ok
     map_x = uv[..., 0].numpy().astype(np.float32)
     map_y = uv[..., 1].numpy().astype(np.float32)

@@ -1,0 +1,180 @@
+"""Evaluation of depth priors against ground truth: accuracy where a prior exists, coverage of the true overlap.
+
+Accuracy: Abs Rel, Sq Rel, RMSE, RMSE log and delta < 1.25^k (`sgde_plugin.metrics.depth_metrics`)
+over prior-valid pixels with ground truth, pooled over frames. Coverage: the share of ground-truth
+pixels inside the TRUE overlap that received a prior, where a pixel of camera A is in the true
+overlap with its neighbour B when its ground-truth 3-D point projects into B (true extrinsics) and
+B's ground truth there confirms the point is visible (not occluded). Per camera, per pair, overall.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..cameras import Camera
+from ..geometry import invert_transform
+from ..metrics import METRIC_KEYS, depth_metrics
+from ..rig import Rig
+from .rectify import torch_threads
+
+GROUP_COLUMNS = ("coverage", *METRIC_KEYS, "n_prior", "n_overlap")
+
+
+def true_overlap(
+    cam_a: Camera, gt_a: np.ndarray, cam_b: Camera, gt_b: np.ndarray, mask_b: np.ndarray | None = None,
+    rel_tol: float = 0.03, abs_tol: float = 0.1,
+) -> np.ndarray:
+    """Bool (H, W) of camera A: ground-truth pixels whose 3-D point B sees unoccluded.
+
+    B "sees" the point when it projects inside B's image (and mask) and B's ground-truth depth at
+    the nearest pixel agrees with the point's depth in B within `rel_tol` (relative) + `abs_tol` m.
+    Both cameras must carry their true extrinsics.
+    """
+    h, w = gt_a.shape
+    ys, xs = np.nonzero(gt_a > 0)
+    out = np.zeros((h, w), bool)
+    if xs.size == 0:
+        return out
+    with torch_threads(1):
+        uv = torch.as_tensor(np.stack([xs, ys], axis=-1), dtype=torch.float64)
+        pts, ok = cam_a.intrinsics.points_from_depth_torch(uv, torch.as_tensor(gt_a[ys, xs], dtype=torch.float64))
+        T = torch.as_tensor(invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego)
+        pts_b = pts @ T[:3, :3].T + T[:3, 3]
+        uv_b, vis = cam_b.intrinsics.project_torch(pts_b)
+        expected = cam_b.intrinsics.depth_torch(pts_b).numpy()
+    col = np.clip(np.rint(uv_b[:, 0].numpy()), 0, cam_b.width - 1).astype(np.intp)
+    row = np.clip(np.rint(uv_b[:, 1].numpy()), 0, cam_b.height - 1).astype(np.intp)
+    seen = (ok & vis).numpy()
+    found = gt_b[row, col]
+    seen &= (found > 0) & (np.abs(found - expected) <= rel_tol * expected + abs_tol)
+    if mask_b is not None:
+        seen &= mask_b[row, col]
+    out[ys[seen], xs[seen]] = True
+    return out
+
+
+class _Group:
+    """Pooled prediction / ground-truth samples and coverage counts of one row of the report."""
+
+    def __init__(self) -> None:
+        self.pred: list[np.ndarray] = []
+        self.gt: list[np.ndarray] = []
+        self.n_overlap = 0
+        self.n_covered = 0
+
+    def add(self, prior: np.ndarray, gt: np.ndarray, select: np.ndarray, overlap: np.ndarray) -> None:
+        sel = select & (prior > 0) & (gt > 0)
+        self.pred.append(prior[sel].astype(np.float32))
+        self.gt.append(gt[sel].astype(np.float32))
+        self.n_overlap += int(overlap.sum())
+        self.n_covered += int((overlap & (prior > 0)).sum())
+
+    def result(self, max_depth: float) -> dict[str, Any]:
+        pred = np.concatenate(self.pred) if self.pred else np.zeros(0, np.float32)
+        gt = np.concatenate(self.gt) if self.gt else np.zeros(0, np.float32)
+        m = depth_metrics(pred, gt, max_depth=max_depth)
+        out: dict[str, Any] = {
+            "coverage": self.n_covered / self.n_overlap if self.n_overlap else float("nan"),
+            **{k: m[k] for k in METRIC_KEYS},
+            "n_prior": int(m["n"]),
+            "n_overlap": self.n_overlap,
+        }
+        return out
+
+
+class PriorEvaluator:
+    """Accumulates frames of priors and ground truth of one rig (true extrinsics); `.result()` reports."""
+
+    def __init__(self, rig_true: Rig, max_depth: float = 80.0):
+        self.rig = rig_true
+        self.max_depth = max_depth
+        self.frames = 0
+        self.cameras = {c: _Group() for c in rig_true.camera_names}
+        self.pairs = {f"{a}|{b}": _Group() for a, b in rig_true.pairs}
+        self.overall = _Group()
+
+    def add(
+        self, priors: Mapping[str, np.ndarray], gts: Mapping[str, np.ndarray | None],
+        masks: Mapping[str, np.ndarray | None] | None = None,
+    ) -> None:
+        """One frame: prior depth per camera (0 = none) and ground truth per camera (None = unknown)."""
+        masks = masks or {}
+        in_range = {}
+        for name, gt in gts.items():
+            if gt is None:
+                continue
+            g = np.where(gt <= self.max_depth, gt, 0).astype(np.float32)
+            if masks.get(name) is not None:
+                g = np.where(masks[name], g, 0)
+            in_range[name] = g
+        overlap: dict[tuple[str, str], np.ndarray] = {}
+        for a, b in self.rig.pairs:
+            if a in in_range and b in in_range:
+                ca, cb = self.rig.camera(a), self.rig.camera(b)
+                overlap[a, b] = true_overlap(ca, in_range[a], cb, gts[b], masks.get(b))
+                overlap[b, a] = true_overlap(cb, in_range[b], ca, gts[a], masks.get(a))
+        for name, g in in_range.items():
+            prior = priors.get(name)
+            if prior is None:
+                prior = np.zeros_like(g)
+            union = np.zeros(g.shape, bool)
+            for (x, _), m in overlap.items():
+                if x == name:
+                    union |= m
+            everywhere = np.ones(g.shape, bool)
+            self.cameras[name].add(prior, g, everywhere, union)
+            self.overall.add(prior, g, everywhere, union)
+        for a, b in self.rig.pairs:
+            if (a, b) not in overlap:
+                continue
+            group = self.pairs[f"{a}|{b}"]
+            for x, y in ((a, b), (b, a)):
+                prior = priors.get(x)
+                prior = np.zeros_like(in_range[x]) if prior is None else prior
+                group.add(prior, in_range[x], overlap[x, y], overlap[x, y])
+        self.frames += 1
+
+    def result(self) -> dict[str, Any]:
+        """{"overall": row, "cameras": {name: row}, "pairs": {"A|B": row}, "frames": n}."""
+        return {
+            "frames": self.frames,
+            "max_depth": self.max_depth,
+            "overall": self.overall.result(self.max_depth),
+            "cameras": {k: g.result(self.max_depth) for k, g in self.cameras.items()},
+            "pairs": {k: g.result(self.max_depth) for k, g in self.pairs.items()},
+        }
+
+
+def evaluate_priors(
+    rig_true: Rig,
+    prior: Callable[[str, str], np.ndarray | None],
+    gt: Callable[[str, str], np.ndarray | None],
+    frame_ids: Iterable[str] | None = None,
+    masks: Mapping[str, np.ndarray | None] | None = None,
+    max_depth: float = 80.0,
+) -> dict[str, Any]:
+    """Evaluate priors `prior(frame_id, camera)` against ground truth `gt(frame_id, camera)`.
+
+    `rig_true` must carry the true extrinsics (they define the true overlap). Returns the report of
+    `PriorEvaluator.result()`: per camera, per pair (pixels of both cameras inside that pair's true
+    overlap) and overall, each with coverage, Abs Rel, Sq Rel, RMSE, RMSE log, a1..a3 and counts.
+    """
+    ev = PriorEvaluator(rig_true, max_depth)
+    ids = [f.id for f in rig_true.frames] if frame_ids is None else list(frame_ids)
+    for fid in ids:
+        priors = {c: prior(fid, c) for c in rig_true.camera_names}
+        gts = {c: gt(fid, c) for c in rig_true.camera_names}
+        ev.add({k: v for k, v in priors.items() if v is not None}, gts, masks)
+    return ev.result()
+
+
+def report_rows(report: Mapping[str, Any]) -> tuple[list[dict], list[dict], list[dict]]:
+    """Table rows (cameras, pairs, overall) of an evaluation report."""
+    def rows(groups: Mapping[str, Any], key: str) -> list[dict]:
+        return [{key: name, **{c: g[c] for c in GROUP_COLUMNS}} for name, g in groups.items()]
+
+    return rows(report["cameras"], "camera"), rows(report["pairs"], "pair"), rows({"all": report["overall"]}, "scope")

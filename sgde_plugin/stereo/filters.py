@@ -1,0 +1,119 @@
+"""Post-processing of rectified disparity maps: sub-pixel refinement, left-right and photometric checks, islands.
+
+All functions work on the "core" columns of a rectified canvas (the shared sector), given as
+arrays of shape (H, Wc) whose column j is canvas column x0 + j. The other image of the pair is
+passed whole (canvas width), so matches may land in its padding.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_DX = np.array([[-0.5, 0.0, 0.5]], np.float32)
+
+
+def grey_float(image: np.ndarray) -> np.ndarray:
+    """uint8 grey or RGB -> float32 grey."""
+    return image.astype(np.float32) if image.ndim == 2 else image.astype(np.float32).mean(axis=2)
+
+
+def shift_maps(disp: np.ndarray, sign: int, x0: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps sampling the other image at canvas column x0 + j + sign * d, same row."""
+    h, w = disp.shape
+    map_x = np.arange(x0, x0 + w, dtype=np.float32)[None, :] + sign * disp.astype(np.float32)
+    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    return map_x, map_y
+
+
+def x_gradient(image: np.ndarray) -> np.ndarray:
+    """Central-difference horizontal gradient of a float32 image."""
+    return cv2.filter2D(image, cv2.CV_32F, _DX, borderType=cv2.BORDER_REPLICATE)
+
+
+def refine_disparity(
+    a: np.ndarray, b: np.ndarray, disp: np.ndarray, valid: np.ndarray, sign: int, x0: int = 0,
+    iterations: int = 1, window: int = 5, max_step: float = 0.5, b_grad: np.ndarray | None = None,
+) -> np.ndarray:
+    """Sub-pixel refinement of `disp` by Gauss-Newton steps on the windowed photometric error.
+
+    SGBM's parabola fit pulls disparities towards integers ("pixel locking", up to 0.15 px); a few
+    offset-compensated Lucas-Kanade steps along the row, with `b` warped by each pixel's own
+    disparity (slanted surfaces stay aligned), remove that bias. `a` is the reference core
+    (float32), `b` the other whole canvas (float32).
+    """
+    stack = cv2.merge([b, x_gradient(b) if b_grad is None else b_grad])
+    d = disp.astype(np.float32).copy()
+    box = (window, window)
+    for _ in range(iterations):
+        map_x, map_y = shift_maps(d, sign, x0)
+        warped = cv2.remap(stack, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        e = a - warped[..., 0]
+        j = sign * warped[..., 1]
+        mj, me = cv2.blur(j, box), cv2.blur(e, box)
+        num = cv2.blur(j * e, box) - mj * me
+        den = cv2.blur(j * j, box) - mj * mj
+        step = np.clip(num / np.maximum(den, 1e-3), -max_step, max_step)
+        ok = valid & (den > 1.0)
+        d[ok] += step[ok]
+    return np.where(valid, d, 0).astype(np.float32)
+
+
+def photometric_scores(
+    a: np.ndarray, b: np.ndarray, disp: np.ndarray, valid: np.ndarray, sign: int, x0: int = 0,
+    window: int = 7, min_std: float = 2.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Windowed ZNCC, mean absolute difference and texture of reference `a` against `b` warped by `disp`.
+
+    `b` is sampled at canvas column x0 + j + sign * d (bilinear), so a slanted surface is compared
+    after its own per-pixel shift. The absolute difference is taken after removing the pair's
+    global brightness offset (median over `valid`), so differently exposed cameras are not
+    penalised. ZNCC is -1 where either patch is flat (std below `min_std` grey levels). Texture is
+    the RMS horizontal gradient of `a` in the window (grey levels per pixel).
+    """
+    map_x, map_y = shift_maps(disp, sign, x0)
+    bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    box = (window, window)
+    e = a - bw
+    offset = float(np.median(e[valid])) if valid.any() else 0.0
+    mad = cv2.blur(np.abs(e - offset), box)
+    ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
+    va = cv2.blur(a * a, box) - ma * ma
+    vb = cv2.blur(bw * bw, box) - mb * mb
+    cov = cv2.blur(a * bw, box) - ma * mb
+    ncc = cov / np.sqrt(np.maximum(va * vb, 1e-6))
+    ncc[(va < min_std**2) | (vb < min_std**2)] = -1.0
+    gx = x_gradient(a)
+    texture = np.sqrt(cv2.blur(gx * gx, box))
+    return ncc, mad, texture
+
+
+def lr_check(
+    disp_a: np.ndarray, conf_a: np.ndarray, disp_b: np.ndarray, conf_b: np.ndarray, sign: int, max_diff: float
+) -> np.ndarray:
+    """Confidence of `disp_a` after the left-right check against `disp_b` (the other reference).
+
+    Both maps cover the same columns. For a left reference (sign=-1) the match of column x is
+    x - d; for a right reference (+1), x + d. The check passes when the other map, at the matched
+    column, agrees within `max_diff` pixels; the confidence then falls off as a Gaussian of the
+    disagreement. Matches outside the other map fail.
+    """
+    h, w = disp_a.shape
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    x = np.rint(cols + sign * disp_a).astype(np.intp)
+    inside = (x >= 0) & (x < w)
+    xc = np.clip(x, 0, w - 1)
+    other = np.take_along_axis(disp_b, xc, axis=1)
+    other_c = np.take_along_axis(conf_b, xc, axis=1)
+    diff = np.abs(disp_a - other)
+    ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
+    return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32)
+
+
+def remove_islands(disp: np.ndarray, conf: np.ndarray, min_area: int, max_step: float = 1.0) -> None:
+    """Zero (in place) the confidence of connected regions of similar disparity smaller than `min_area` px."""
+    if min_area <= 0:
+        return
+    d16 = np.where(conf > 0, np.rint(disp * 16), -16).astype(np.int16)
+    cv2.filterSpeckles(d16, -16, int(min_area), int(round(max_step * 16)))
+    conf[d16 < 0] = 0
