@@ -9,6 +9,7 @@ import numpy as np
 
 from sgde_plugin.cameras import Camera, KannalaBrandt, Pinhole
 from sgde_plugin.geometry import camera_mount
+from sgde_plugin.stereo.rectify import torch_threads
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,8 @@ def render(planes: list[Plane], camera: Camera, supersample: int = 2) -> tuple[n
     """RGB uint8 and depth float32 (camera convention, 0 = nothing hit) of the planes seen by `camera`."""
     k = supersample
     big = camera.intrinsics.resized(camera.width * k, camera.height * k)
-    rays, valid = big.ray_grid()
+    with torch_threads(1):
+        rays, valid = big.ray_grid()
     rays, valid = rays.numpy(), valid.numpy()
     R, c = camera.sensor_to_ego[:3, :3], camera.sensor_to_ego[:3, 3]
     d_ego = rays @ R.T
