@@ -15,7 +15,7 @@ from sgde_plugin.commands.validate import pair_rows
 from sgde_plugin.geometry import rotation_angle_deg
 from sgde_plugin.rig import read_rig_folder, read_rig_json
 from sgde_plugin.synth.presets import preset_cameras, preset_ring
-from sgde_plugin.synth.render import render
+from sgde_plugin.synth.render import render, rig_lod
 from sgde_plugin.synth.sequence import perturb_extrinsics, synth_sequence, write_synth
 from sgde_plugin.synth.truth import cross_view_check
 from sgde_plugin.synth.world import build_world
@@ -32,7 +32,8 @@ def test_cross_view_truth(preset):
     cams = {c.name: c for c in preset_cameras(preset, TRUTH_SCALE[preset])}
     time_s = 0.7
     pose = world.ego_pose(time_s)
-    out = {n: render(world, c, pose, time_s) for n, c in cams.items()}
+    lod = rig_lod(list(cams.values()))  # what synth_sequence uses: one texture LOD for the whole rig
+    out = {n: render(world, c, pose, time_s, lod=lod) for n, c in cams.items()}
     ring = preset_ring(preset)
     for a, b in zip(ring, ring[1:] + ring[:1]):
         for x, y in ((a, b), (b, a)):
@@ -47,8 +48,9 @@ def test_cross_view_check_detects_a_wrong_pose():
     cams = preset_cameras("nuscenes", 0.3)
     pose = world.ego_pose(0.0)
     a, b = cams[0], cams[1]
-    ra, da = render(world, a, pose, 0.0)
-    rb, db = render(world, b, pose, 0.0)
+    lod = rig_lod(cams)
+    ra, da = render(world, a, pose, 0.0, lod=lod)
+    rb, db = render(world, b, pose, 0.0, lod=lod)
     good = cross_view_check(world, a, b, pose, 0.0, ra, da, rb, db)
     wrong = perturb_extrinsics([b], seed=5, noise_deg=1.0, noise_m=0.0)[b.name]
     bad = cross_view_check(world, a, b.with_pose(wrong), pose, 0.0, ra, da, rb, db)

@@ -16,14 +16,15 @@ def _frame_seconds(world, cameras, time_s: float, workers: int) -> tuple[float, 
     """Wall seconds to render one frame of all cameras, `workers` cameras at a time, and the renders."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from ..synth.render import ray_tiles, render, torch_threads
+    from ..synth.render import ray_tiles, render, rig_lod, torch_threads
 
     for cam in cameras:  # ray grids are cached per camera model; build them outside the timing
         ray_tiles(cam.intrinsics, 1)
     pose = world.ego_pose(time_s)
+    lod = rig_lod(list(cameras))
     start = time.perf_counter()
     with torch_threads(1), ThreadPoolExecutor(max_workers=workers) as pool:
-        out = dict(zip([c.name for c in cameras], pool.map(lambda c: render(world, c, pose, time_s), cameras)))
+        out = dict(zip([c.name for c in cameras], pool.map(lambda c: render(world, c, pose, time_s, lod=lod), cameras)))
     return time.perf_counter() - start, out
 
 

@@ -223,13 +223,42 @@ def _untile(x: Tensor, tiles: RayTiles, height: int, width: int) -> Tensor:
     return x[:height, :width]
 
 
+def pixel_angle_at_centre(intrinsics: CameraModel) -> float:
+    """Angle (radians) between the rays of the two pixels left and right of the principal area's centre."""
+    cu, cv = (intrinsics.width - 1) / 2, (intrinsics.height - 1) / 2
+    rays, _ = intrinsics.unproject(np.array([[cu - 0.5, cv], [cu + 0.5, cv]]))
+    return float(np.arccos(np.clip(rays[0] @ rays[1], -1.0, 1.0)))
+
+
+@dataclass(frozen=True)
+class TextureLod:
+    """Texture level of detail shared by a rig: pre-filter angle (radians) and origin (ego metres).
+
+    Texture is pre-filtered by (distance from the origin x angle), so every camera of the rig sees
+    exactly the same colour at a surface point whatever its resolution or position.
+    """
+
+    angle: float
+    origin_ego: tuple[float, float, float]
+
+
+def rig_lod(cameras: list[Camera]) -> TextureLod:
+    """The LOD of a rig: the coarsest camera's central pixel angle, measured from the mean camera position."""
+    angle = max(pixel_angle_at_centre(c.intrinsics) for c in cameras)
+    centre = np.mean([c.sensor_to_ego[:3, 3] for c in cameras], axis=0)
+    return TextureLod(angle, tuple(float(v) for v in centre))
+
+
 def render(
-    world: World, camera: Camera, ego_to_world: np.ndarray, time_s: float, supersample: int = 1, threads: int = 1
+    world: World, camera: Camera, ego_to_world: np.ndarray, time_s: float, supersample: int = 1, threads: int = 1,
+    lod: TextureLod | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """RGB uint8 (H, W, 3) and depth float32 (H, W) in the camera's convention (z or range), 0 = no value.
 
     `threads` is torch's intra-op thread count during the call (1 is fastest on a shared machine;
-    render several cameras concurrently for throughput, as `synth_sequence` does).
+    render several cameras concurrently for throughput, as `synth_sequence` does). `lod` sets the
+    texture pre-filter; pass `rig_lod(cameras)` to render a rig consistently (default: this
+    camera's own per-pixel footprint).
     """
     if supersample < 1:
         raise ValueError("supersample must be >= 1")
@@ -251,7 +280,12 @@ def render(
         else:
             tiles = ray_tiles(intr, supersample)
             hits = trace(world, tiles, cam_to_world, time_s)
-        rgb = shade(world, hits.t, hits.pid, hits.dirs, tiles.pixel_angle, tiles.valid, cam_to_world[:3, 3], time_s)
+        if lod is None:
+            angle, lod_origin = tiles.pixel_angle, None
+        else:
+            angle = torch.full_like(tiles.pixel_angle, float(lod.angle))
+            lod_origin = (np.asarray(ego_to_world, np.float64) @ np.array([*lod.origin_ego, 1.0]))[:3]
+        rgb = shade(world, hits.t, hits.pid, hits.dirs, angle, tiles.valid, cam_to_world[:3, 3], time_s, lod_origin)
         rgb = _untile(rgb, tiles, intr.height, intr.width).mean(dim=2)
         rgb8 = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
     return rgb8.numpy(), depth.numpy().astype(np.float32)

@@ -24,7 +24,7 @@ from ..geometry import make_transform, rodrigues
 from ..io import write_depth_png, write_image
 from ..rig import Frame, Rig, ring_pairs, write_rig_json
 from .presets import preset_cameras, preset_ring
-from .render import render, torch_threads
+from .render import render, rig_lod, torch_threads
 from .world import MAX_FRAMES, World, build_world
 
 FRAME_RATE_HZ = 10.0
@@ -101,9 +101,11 @@ def _render_frames(world: World, rig_true: Rig, supersample: int,
 
     jobs = [(fr, cam) for fr in rig_true.frames for cam in rig_true.cameras]
 
+    lod = rig_lod(list(rig_true.cameras))
+
     def one(job: tuple[Frame, Camera]) -> tuple[np.ndarray, np.ndarray]:
         fr, cam = job
-        return render(world, cam, fr.ego_to_world, fr.timestamp_us * 1e-6, supersample, threads=1)
+        return render(world, cam, fr.ego_to_world, fr.timestamp_us * 1e-6, supersample, threads=1, lod=lod)
 
     with torch_threads(1), ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         results = pool.map(one, jobs)

@@ -23,7 +23,7 @@ _MORTAR = torch.tensor([0.72, 0.70, 0.66])
 _ROOF = torch.tensor([0.30, 0.29, 0.28])
 
 # octave gains (7 octaves, lattice spacing texel * 2**c)
-_G_FINE = torch.tensor([0.035, 0.045, 0.055, 0.065, 0.07, 0.07, 0.06])
+_G_FINE = torch.tensor([0.03, 0.05, 0.08, 0.13, 0.18, 0.18, 0.13])
 _G_COARSE = torch.tensor([0.05, 0.06, 0.07, 0.07, 0.06, 0.05, 0.05])
 _G_SOFT = torch.tensor([0.02, 0.025, 0.03, 0.03, 0.03, 0.025, 0.02])
 
@@ -44,8 +44,17 @@ FILTER_PX = 1.5
 SURFACE_BLUR_M = 0.015
 
 
-def _footprint(t: Tensor, pixel_angle: Tensor, n_dot_d: Tensor) -> Tensor:
-    f = FILTER_PX * t * pixel_angle / n_dot_d.abs().clamp_min(0.2)
+def _footprint(q: Tensor, n: Tensor, pixel_angle: Tensor, min_cos: float = 0.5) -> Tensor:
+    """Texture pre-filter width (m) of surface points at offsets `q` (n, 3) from the LOD origin, normals `n`.
+
+    The pixel footprint at the point's distance, widened at oblique incidence (up to 1 / min_cos).
+    With the LOD origin shared by a rig, every camera filters a point the same way. The ground is
+    seen at nearly the same grazing angle from the whole rig, so it may widen a lot; walls are seen
+    from very different directions by neighbouring cameras, so their widening is kept small.
+    """
+    dist = q.norm(dim=1).clamp_min(1e-6)
+    cos = (q * n).sum(1).abs() / dist
+    f = FILTER_PX * dist * pixel_angle / cos.clamp_min(min_cos)
     return torch.sqrt(f * f + SURFACE_BLUR_M**2)
 
 
@@ -77,7 +86,7 @@ def facade_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor,
     row = torch.floor(z / 0.075)
     shift = torch.remainder(row, 2.0) * 0.12
     mortar = 1 - (1 - stripes(z, 0.075, 0.01, f)) * (1 - stripes(s + shift, 0.24, 0.01, f))
-    wall = _mix(wall, _MORTAR * (1 + grain[:, None]), mortar * brick * 0.5)
+    wall = _mix(wall, _MORTAR * (1 + grain[:, None]), mortar * brick * 0.35)
     # a cornice line at every floor
     cornice = stripes(z - floor_h + 0.1, floor_h, 0.22, f) * band(z, floor_h - 0.5, top - 0.3, f)
     wall = _mix(wall, colour * 0.75 + 0.2, cornice * 0.8)
@@ -138,8 +147,14 @@ def _light(world: World, n: Tensor) -> Tensor:
 
 
 def shade(world: World, t: Tensor, pid: Tensor, dirs: Tensor, pixel_angle: Tensor, valid: Tensor,
-          origin: np.ndarray, time_s: float) -> Tensor:
-    """Linear RGB in [0, 1] of every ray (same leading shape as `t`) from the hits of `trace`."""
+          origin: np.ndarray, time_s: float, lod_origin: np.ndarray | None = None) -> Tensor:
+    """Linear RGB in [0, 1] of every ray (same leading shape as `t`) from the hits of `trace`.
+
+    Rays start at `origin` (world); texture level of detail is measured from `lod_origin`
+    (world, default `origin`).
+    """
+    off = np.zeros(3) if lod_origin is None else np.asarray(origin, np.float64) - np.asarray(lod_origin, np.float64)
+    lod_off = torch.from_numpy(off).float()
     shape = t.shape
     t, pid, d = t.reshape(-1), pid.reshape(-1), dirs.reshape(-1, 3)
     pa, valid = pixel_angle.reshape(-1), valid.reshape(-1)
@@ -152,14 +167,14 @@ def shade(world: World, t: Tensor, pid: Tensor, dirs: Tensor, pixel_angle: Tenso
         tg, dg = t[g], d[g]
         x = float(origin[0]) + tg * dg[:, 0]
         y = float(origin[1]) + tg * dg[:, 1]
-        f = _footprint(tg, pa[g], dg[:, 2])
         n = torch.tensor([[0.0, 0.0, 1.0]]).expand(g.numel(), 3)
+        f = _footprint(lod_off + tg[:, None] * dg, n, pa[g], min_cos=0.15)
         out[g] = ground_albedo(world, x, y, f) * _light(world, n)[:, None]
 
     # boxes
     b = torch.nonzero((pid >= 1) & (pid <= world.n_boxes)).flatten()
     if b.numel():
-        out[b] = _shade_boxes(world, t[b], pid[b] - 1, d[b], pa[b], origin, time_s)
+        out[b] = _shade_boxes(world, t[b], pid[b] - 1, d[b], pa[b], origin, time_s, lod_off)
 
     # poles
     p = torch.nonzero(pid > world.n_boxes).flatten()
@@ -172,7 +187,7 @@ def shade(world: World, t: Tensor, pid: Tensor, dirs: Tensor, pixel_angle: Tenso
         n = torch.stack([hx / r, hy / r, torch.zeros_like(hx)], dim=1)
         z = float(origin[2]) + tp * dp[:, 2]
         s = torch.atan2(hy, hx) * r
-        f = _footprint(tp, pa[p], (n * dp).sum(1))
+        f = _footprint(lod_off + tp[:, None] * dp, n, pa[p])
         colour = torch.from_numpy(world.pole_color).float()[m]
         out[p] = metal_albedo(world, s, z, f, colour) * _light(world, n)[:, None]
     return out.reshape(*shape, 3)
@@ -194,7 +209,7 @@ def _box_table(world: World, origin: np.ndarray, time_s: float) -> Tensor:
 
 
 def _shade_boxes(world: World, t: Tensor, j: Tensor, d: Tensor, pa: Tensor, origin: np.ndarray,
-                 time_s: float) -> Tensor:
+                 time_s: float, lod_off: Tensor) -> Tensor:
     j = j.long()
     q = _box_table(world, origin, time_s)[j]
     cj, sj = q[:, 3], q[:, 4]
@@ -204,7 +219,7 @@ def _shade_boxes(world: World, t: Tensor, j: Tensor, d: Tensor, pa: Tensor, orig
     sign = torch.sign(p.gather(1, face[:, None]))[:, 0]
     n_loc = torch.zeros_like(p).scatter_(1, face[:, None], sign[:, None])
     n = torch.stack([cj * n_loc[:, 0] + sj * n_loc[:, 1], -sj * n_loc[:, 0] + cj * n_loc[:, 1], n_loc[:, 2]], dim=1)
-    f = _footprint(t, pa, (n * d).sum(1))
+    f = _footprint(lod_off + t[:, None] * d, n, pa)
     zw = p[:, 2] + q[:, 10]  # height above the ground
     top = face == 2
     s_coord = torch.where(face == 0, p[:, 1], p[:, 0]) + q[:, 11]
