@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -49,13 +48,6 @@ def _random_image_and_prior(batch: int, size: tuple[int, int]) -> list[Tensor]:
     return [image, prior]
 
 
-def _chmod_like_new_file(path: Path) -> None:
-    """Give the file the mode a plain open() would (temporary files are created 0600)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
-
-
 def export_spec(
     spec: ExportSpec,
     out: str | Path,
@@ -87,6 +79,5 @@ def export_spec(
             report["check_seconds"] = round(time.perf_counter() - t0, 2)
             report["tolerance"] = {"atol_fraction_of_range": tolerance[0], "rtol": tolerance[1]}
         report["bytes"] = tmp.stat().st_size
-        _chmod_like_new_file(tmp)
     report["parity"] = results
     return report

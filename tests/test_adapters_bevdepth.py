@@ -6,11 +6,12 @@ import math
 
 import pytest
 import torch
+from torch import nn
+
 from sgde_plugin.adapters import PriorDepthNet, PriorInjector
 from sgde_plugin.adapters.camera_aware import camera_params
 from sgde_plugin.adapters.depth_bins import depth_bin_labels, num_depth_bins
 from sgde_plugin.adapters.prior_features import min_pool_nonzero
-from torch import nn
 
 
 def _mats(b: int, n: int, seed: int = 0) -> dict[str, torch.Tensor]:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+
 from sgde_plugin.adapters import PriorDepthNet
 from sgde_plugin.adapters.voxformer import DepthToVoxelProposals, RigDepthToVoxelProposals, VoxelGrid
 from sgde_plugin.export import check_parity, export_onnx
 from sgde_plugin.export.models import BEVDepthForExport, nuscenes_like_mats
-
 from sgde_plugin.synth.presets import preset_cameras
 
 AXES_B = {0: "batch"}

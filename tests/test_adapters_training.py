@@ -15,10 +15,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from mock_bev import HeatmapHead, frustum_points, lss_pool
-from sgde_plugin.adapters import PriorDepthNet
-from sgde_plugin.adapters.depth_bins import num_depth_bins
 from torch import nn
 
+from sgde_plugin.adapters import PriorDepthNet
+from sgde_plugin.adapters.depth_bins import num_depth_bins
 from sgde_plugin.geometry import camera_mount
 
 H, W, STRIDE = 64, 176, 16

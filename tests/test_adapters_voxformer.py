@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+
 from sgde_plugin.adapters import (
     OCC3D_NUSCENES_GRID,
     VOXFORMER_GRID,
@@ -14,7 +15,6 @@ from sgde_plugin.adapters import (
     proposal_depth_loss,
     proposal_indices,
 )
-
 from sgde_plugin.cameras import Camera, Pinhole
 from sgde_plugin.geometry import camera_mount
 from sgde_plugin.stereo.virtual import virtual_pinholes

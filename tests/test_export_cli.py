@@ -9,10 +9,10 @@ import textwrap
 
 import numpy as np
 import torch
-from sgde_plugin.adapters import PriorDepthNet
-from sgde_plugin.export import read_metadata
 
+from sgde_plugin.adapters import PriorDepthNet
 from sgde_plugin.cli import main
+from sgde_plugin.export import read_metadata
 
 SMALL = {"in_channels": 8, "mid_channels": 16, "context_channels": 4, "depth_channels": 112}
 

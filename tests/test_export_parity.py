@@ -7,6 +7,7 @@ import json
 import onnx
 import pytest
 import torch
+
 from sgde_plugin.export import ParityError, check_parity, read_metadata
 from sgde_plugin.export import workflow as wf
 from sgde_plugin.export.models import build_bevdepth, build_r18
