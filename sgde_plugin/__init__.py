@@ -11,6 +11,10 @@ __version__ = "0.1.0"
 _LAZY = {
     "PriorCache": "sgde_plugin.cache.store",
     "load_rig": "sgde_plugin.readers.detect",
+    "load_rigs": "sgde_plugin.readers.detect",
+    "list_scenes": "sgde_plugin.readers.detect",
+    "Rig": "sgde_plugin.rig",
+    "Camera": "sgde_plugin.cameras",
 }
 
 

@@ -86,9 +86,18 @@ class Rig:
         return read_image(path)
 
     def load_depth(self, frame_id: str, camera: str) -> np.ndarray | None:
-        """Ground-truth depth in metres (0 = none), or None when the rig has none."""
+        """Ground-truth depth in metres (0 = none) in the camera's convention, or None when the rig has none.
+
+        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera.
+        """
         path = self.frame(frame_id).depths.get(camera)
-        return None if path is None else read_depth_png(path)
+        if path is None:
+            return None
+        if Path(path).suffix.lower() in (".tif", ".tiff"):
+            from .readers.omnimvs import load_panorama_depth
+
+            return load_panorama_depth(path, self.camera(camera))
+        return read_depth_png(path)
 
     def load_mask(self, camera: str) -> np.ndarray | None:
         """Static mask (True = use), or None when the rig has none for this camera."""

@@ -16,7 +16,7 @@ from sgde_plugin.cli import main
 from sgde_plugin.errors import InputError
 from sgde_plugin.geometry import camera_mount
 from sgde_plugin.io import write_image
-from sgde_plugin.readers import list_scenes, load_depth, load_rig
+from sgde_plugin.readers import list_scenes, load_rig
 from sgde_plugin.readers.omnimvs import panorama_rays, read_inverse_depth_tiff
 
 W, H = 800, 768
@@ -131,7 +131,7 @@ def test_panorama_ground_truth_to_camera_range(urban: Path) -> None:
     np.testing.assert_allclose(rays[40, 80, :2] / np.linalg.norm(rays[40, 80, :2]), [0, 1], atol=1e-12)
     assert rays[0, 0, 2] == pytest.approx(math.sin(math.radians(45.0)))
     cam = rig.camera("cam2")
-    depth = load_depth(rig, "0001", "cam2")
+    depth = rig.load_depth("0001", "cam2")
     assert depth.shape == (H, W) and depth.dtype == np.float32
     v, u = np.nonzero(depth)
     assert len(u) > 2000
@@ -143,7 +143,7 @@ def test_panorama_ground_truth_to_camera_range(urban: Path) -> None:
     np.testing.assert_allclose(depth[v, u], expected, atol=5e-3)
     up = (dirs[:, 2] / np.linalg.norm(dirs, axis=-1))
     assert up.max() < math.sin(math.radians(45.5))  # nothing above the panorama's band
-    assert load_depth(rig, "0002", "cam2") is None
+    assert rig.load_depth("0002", "cam2") is None
 
 
 def test_frames_listed_without_range(tmp_path: Path, urban: Path) -> None:

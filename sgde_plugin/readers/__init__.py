@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from .depth import load_depth
 from .detect import list_scenes, load_rig, load_rigs, locate
 
-__all__ = ["list_scenes", "load_depth", "load_rig", "load_rigs", "locate"]
+__all__ = ["list_scenes", "load_rig", "load_rigs", "locate"]
