@@ -23,7 +23,7 @@ _MORTAR = torch.tensor([0.72, 0.70, 0.66])
 _ROOF = torch.tensor([0.30, 0.29, 0.28])
 
 # octave gains (7 octaves, lattice spacing texel * 2**c)
-_G_FINE = torch.tensor([0.03, 0.05, 0.08, 0.13, 0.18, 0.18, 0.13])
+_G_FINE = torch.tensor([0.03, 0.05, 0.07, 0.11, 0.14, 0.14, 0.11])
 _G_COARSE = torch.tensor([0.05, 0.06, 0.07, 0.07, 0.06, 0.05, 0.05])
 _G_SOFT = torch.tensor([0.02, 0.025, 0.03, 0.03, 0.03, 0.025, 0.02])
 
@@ -100,7 +100,42 @@ def facade_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor,
     shop = band(z, 0.55, floor_h - 0.6, f) * stripes(s - 0.4, 2 * spacing, 1.5 * spacing, f)
     glass_col = _GLASS * (1 + 1.5 * blotch[:, None] + grain[:, None])
     out = _mix(wall, (0.5 * _FRAME + 0.5 * wall) * (1 + 0.5 * grain[:, None]), frame * upper)
-    return _mix(out, glass_col, torch.maximum(glass * upper, shop))
+    out = _mix(out, glass_col, torch.maximum(glass * upper, shop))
+    return _signs(out, s, z, f, floor_h, spacing)
+
+
+def hash01(i: Tensor, salt: int) -> Tensor:
+    """A deterministic pseudo-random value in [0, 1) per integer (int64 tensor), for per-cell choices."""
+    h = (i * 0x9E3779B1 + salt * 0x85EBCA77) & 0xFFFFFFFF
+    h = h ^ (h >> 15)
+    h = (h * 0x2C1B3C6D) & 0xFFFFFFFF
+    h = h ^ (h >> 12)
+    h = (h * 0x297A2D39) & 0xFFFFFFFF
+    h = h ^ (h >> 15)
+    return h.to(torch.float32) / 4294967296.0
+
+
+def _signs(out: Tensor, s: Tensor, z: Tensor, f: Tensor, floor_h: Tensor, spacing: Tensor) -> Tensor:
+    """Shop signs with letter-like blocks above the shop windows and posters between them (distinct features)."""
+    # one sign panel per shop-window bay, in the band just below the first cornice
+    bay = torch.floor((s - 0.4) / (2 * spacing)).to(torch.int64)
+    present = (hash01(bay, 1) < 0.7).float()
+    panel = band(z, floor_h - 0.58, floor_h - 0.18, f) * stripes(s - 0.5, 2 * spacing, 1.3 * spacing, f) * present
+    hue = torch.stack([hash01(bay, 2), hash01(bay, 3), hash01(bay, 4)], dim=1)
+    back = 0.15 + 0.8 * hue
+    ink = 1.0 - back
+    letter = torch.floor(s / 0.26).to(torch.int64)
+    glyph = (hash01(letter, 5) < 0.75).float() * stripes(s, 0.26, 0.17, f) * band(z, floor_h - 0.50, floor_h - 0.26, f)
+    sign = _mix(back, ink, glyph)
+    out = _mix(out, sign, panel)
+    # posters on the wall between the shop windows
+    cell = torch.floor((s - 0.4 - 1.55 * spacing) / (2 * spacing)).to(torch.int64)
+    has = (hash01(cell, 6) < 0.5).float()
+    poster = band(z, 0.9, 2.1, f) * stripes(s - 0.4 - 1.55 * spacing, 2 * spacing, 0.4 * spacing, f) * has
+    pcol = torch.stack([hash01(cell, 7), hash01(cell, 8), hash01(cell, 9)], dim=1)
+    rows = stripes(z, 0.3, 0.14, f)[:, None]
+    art = pcol * (1 - rows) + (1 - pcol) * rows * 0.8
+    return _mix(out, art, poster)
 
 
 def car_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor, material: Tensor,
