@@ -33,23 +33,27 @@ def x_gradient(image: np.ndarray) -> np.ndarray:
 
 def refine_disparity(
     a: np.ndarray, b: np.ndarray, disp: np.ndarray, valid: np.ndarray, sign: int, x0: int = 0,
-    iterations: int = 1, window: int = 5, max_step: float = 0.5, b_grad: np.ndarray | None = None,
+    iterations: int = 1, window: int = 5, max_step: float = 0.5,
 ) -> np.ndarray:
     """Sub-pixel refinement of `disp` by Gauss-Newton steps on the windowed photometric error.
 
     SGBM's parabola fit pulls disparities towards integers ("pixel locking", up to 0.15 px); a few
     offset-compensated Lucas-Kanade steps along the row, with `b` warped by each pixel's own
-    disparity (slanted surfaces stay aligned), remove that bias. `a` is the reference core
-    (float32), `b` the other whole canvas (float32).
+    disparity (slanted surfaces stay aligned), remove that bias. The derivative used is the one of
+    the bilinear interpolant itself (the forward difference of the cell the sample falls in), so a
+    step is exact for it even on texture close to the sampling limit, where a central difference
+    would underestimate the slope and overshoot. `a` is the reference core (float32), `b` the other
+    whole canvas (float32).
     """
-    stack = cv2.merge([b, x_gradient(b) if b_grad is None else b_grad])
+    db = np.zeros_like(b)
+    db[:, :-1] = b[:, 1:] - b[:, :-1]
     d = disp.astype(np.float32).copy()
     box = (window, window)
     for _ in range(iterations):
         map_x, map_y = shift_maps(d, sign, x0)
-        warped = cv2.remap(stack, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        e = a - warped[..., 0]
-        j = sign * warped[..., 1]
+        bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        j = sign * cv2.remap(db, np.floor(map_x), map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        e = a - bw
         mj, me = cv2.blur(j, box), cv2.blur(e, box)
         num = cv2.blur(j * e, box) - mj * me
         den = cv2.blur(j * j, box) - mj * mj

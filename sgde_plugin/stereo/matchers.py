@@ -142,7 +142,8 @@ class TorchMatcher:
         h, w = left.shape[:2]
         a = _pad_to(_as_rgb_float(left) * self.input_scale, self.pad_multiple)
         b = _pad_to(_as_rgb_float(right) * self.input_scale, self.pad_multiple)
-        with torch.inference_mode():
+        # TorchScript re-optimises for every new input shape, and canvases differ per pair: run it plainly
+        with torch.inference_mode(), torch.jit.optimized_execution(False):
             out = self.module(torch.from_numpy(a), torch.from_numpy(b))
         return _learned_result(_disparity_from_output(out, h, w, self.flow_output), max_disparity)
 

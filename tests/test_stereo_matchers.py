@@ -1,0 +1,162 @@
+"""Matchers: SGBM recovers known shifts, sub-pixel refinement removes pixel locking, and the learned-matcher
+adapter runs a tiny stand-in network as a state dict, TorchScript and ONNX with identical results.
+
+Runtime: about 8 s on 2 cores.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from stereo_scene import _texture
+
+from sgde_plugin.errors import InputError
+from sgde_plugin.stereo.filters import refine_disparity
+from sgde_plugin.stereo.matchers import OnnxMatcher, SGBMMatcher, TorchMatcher, load_learned_matcher
+from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
+from sgde_plugin.stereo.rectify import torch_threads
+
+
+class TinyMatcher(torch.nn.Module):
+    """Stand-in learned matcher: box-filtered absolute-difference cost volume and a soft arg-min."""
+
+    def __init__(self, disparities: int = 16):
+        super().__init__()
+        self.disparities = disparities
+        self.sharpness = torch.nn.Parameter(torch.tensor(1.0))
+
+    def disparity(self, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+        w = left.shape[-1]
+        costs = []
+        for d in range(self.disparities):
+            shifted = F.pad(right[..., : w - d], (d, 0)) if d else right
+            costs.append(F.avg_pool2d((left - shifted).abs().mean(1, keepdim=True), 5, 1, 2))
+        cost = torch.cat(costs, 1)
+        p = torch.softmax(-cost * self.sharpness * 4.0, dim=1)
+        return (p * torch.arange(self.disparities, dtype=left.dtype).view(1, -1, 1, 1)).sum(1, keepdim=True)
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+        return self.disparity(left, right)
+
+
+class TinyFlowMatcher(TinyMatcher):
+    """The same, answering like RAFT-Stereo: a list of flows whose x component is minus the disparity."""
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor) -> list[torch.Tensor]:
+        d = self.disparity(left, right)
+        return [torch.cat([-d, torch.zeros_like(d)], 1)]
+
+
+def tiny_factory() -> TinyMatcher:
+    """Factory for `matcher_arch` (imported by name in the test)."""
+    return TinyMatcher(16)
+
+
+def _pair(shift: float, h: int = 64, w: int = 96, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """A textured left image and the right image seeing it `shift` px further left (disparity = shift)."""
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+
+    def img(dx: float) -> np.ndarray:
+        acc = np.zeros((h, w))
+        for i in range(4):
+            for j in range(4):  # 4x4 supersampling of the pixel area
+                acc += _texture((xs + (i + 0.5) / 4 - 0.5 + dx) * 0.05, (ys + (j + 0.5) / 4 - 0.5) * 0.05, seed)
+        return np.clip(acc / 16 * 255 + 0.5, 0, 255).astype(np.uint8)
+
+    return img(0.0), img(shift)
+
+
+@pytest.mark.parametrize("shift", [6.0, 11.0])
+def test_sgbm_recovers_integer_shifts(shift):
+    left, right = _pair(shift, 80, 160)
+    disp, conf = SGBMMatcher().match(left, right, 32)
+    ok = conf > 0
+    ok[:, :40] = False  # the first numDisparities columns have no full search range
+    assert ok.sum() > 0.5 * ok[:, 40:].size
+    assert abs(np.median(disp[ok]) - shift) < 0.05
+    assert np.all(disp[~(conf > 0)] == 0)
+    with pytest.raises(ValueError):
+        SGBMMatcher().match(left, right, 20)
+
+
+@pytest.mark.parametrize("shift", [8.3, 8.75])
+def test_refinement_removes_pixel_locking(shift):
+    left, right = _pair(shift, 80, 160)
+    disp, conf = SGBMMatcher().match(left, right, 32)
+    ok = conf > 0
+    ok[:, :40] = False
+    ok[:, -8:] = False
+    bias_before = (disp[ok] - shift).mean()
+    refined = refine_disparity(left.astype(np.float32), right.astype(np.float32), disp, ok, -1, 0, iterations=1)
+    err = refined[ok] - shift
+    assert abs(bias_before) > 0.08  # SGBM alone is pulled towards the integer
+    assert abs(err.mean()) < 0.02 and np.abs(err).mean() < 0.5 * np.abs(disp[ok] - shift).mean()
+
+
+@pytest.fixture(scope="module")
+def tiny_files(tmp_path_factory):
+    """The stand-in network as a state dict, a TorchScript file and an ONNX file."""
+    torch.manual_seed(0)
+    folder = tmp_path_factory.mktemp("matchers")
+    net = TinyMatcher(16).eval()
+    with torch.no_grad():
+        net.sharpness.fill_(2.0)  # a trained value the state dict must carry
+    torch.save(net.state_dict(), folder / "tiny.pt")
+    example = (torch.rand(1, 3, 64, 96) * 255, torch.rand(1, 3, 64, 96) * 255)
+    torch.jit.trace(net, example).save(str(folder / "tiny_script.pt"))
+    torch.onnx.export(net, example, str(folder / "tiny.onnx"), input_names=["left", "right"], output_names=["disp"],
+                      opset_version=17, dynamo=False)
+    return folder
+
+
+def test_learned_matcher_adapter_state_dict_torchscript_and_onnx_agree(tiny_files):
+    left, right = _pair(5.0)
+    from_state = TorchMatcher.from_state_dict(tiny_factory, tiny_files / "tiny.pt")
+    assert float(from_state.module.sharpness.detach()) == 2.0
+    scripted = load_learned_matcher(tiny_files / "tiny_script.pt")
+    onnx = load_learned_matcher(tiny_files / "tiny.onnx")
+    assert isinstance(scripted, TorchMatcher) and isinstance(onnx, OnnxMatcher)
+    results = [m.match(left, right, 16) for m in (from_state, scripted, onnx)]
+    d0 = results[0][0]
+    inner = np.s_[:, 20:-4]
+    assert abs(np.median(d0[inner]) - 5.0) < 0.1
+    for d, c in results[1:]:
+        assert np.abs(d - d0).max() < 1e-3
+        assert c.min() >= 0 and c.max() == 1.0
+    # grey input is replicated to three channels: RGB of the same grey gives the same answer
+    rgb = scripted.match(np.repeat(left[..., None], 3, 2), np.repeat(right[..., None], 3, 2), 16)[0]
+    assert np.abs(rgb - d0).max() < 1e-4
+    # an image that needs padding (to multiples of 32) is cropped back
+    assert scripted.match(left[:50, :70], right[:50, :70], 16)[0].shape == (50, 70)
+    via_arch = load_learned_matcher(tiny_files / "tiny.pt", arch="test_stereo_matchers:tiny_factory")
+    assert np.abs(via_arch.match(left, right, 16)[0] - d0).max() < 1e-5
+
+
+def test_flow_output_convention_and_refusals(tiny_files):
+    left, right = _pair(4.0)
+    flow = TorchMatcher(TinyFlowMatcher(16).eval(), flow_output=True)
+    d, _ = flow.match(left, right, 16)
+    assert abs(np.median(d[:, 20:-4]) - 4.0) < 0.1
+    with pytest.raises(InputError, match="state dict"):
+        load_learned_matcher(tiny_files / "tiny.pt")
+    with pytest.raises(InputError, match="not found"):
+        load_learned_matcher(tiny_files / "missing.onnx")
+
+
+def test_prior_builder_runs_a_learned_matcher(tiny_files, tmp_path):
+    from test_stereo_prior import pinhole_scene
+
+    rig, images, depths = pinhole_scene()
+    path = tmp_path / "wide.pt"
+    example = (torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255)
+    torch.jit.trace(TinyMatcher(48).eval(), example).save(str(path))  # the pair searches 48 px
+    config = PriorConfig(matcher="torch", matcher_path=str(path))
+    assert config.to_dict()["matcher_sha256"]
+    with torch_threads(1):  # OpenMP threads crawl when the machine is busy (see rectify.torch_threads)
+        out = PriorBuilder(rig, config).build(images)
+    prior, gt = out["FRONT"].depth, depths["FRONT"]
+    ok = (prior > 0) & (gt > 0)
+    assert ok.sum() > 1000
+    assert np.median(np.abs(prior[ok] - gt[ok]) / gt[ok]) < 0.02
