@@ -101,7 +101,10 @@ def facade_albedo(world: World, s: Tensor, z: Tensor, f: Tensor, colour: Tensor,
     glass_col = _GLASS * (1 + 1.5 * blotch[:, None] + grain[:, None])
     out = _mix(wall, (0.5 * _FRAME + 0.5 * wall) * (1 + 0.5 * grain[:, None]), frame * upper)
     out = _mix(out, glass_col, torch.maximum(glass * upper, shop))
-    return _signs(out, s, z, f, floor_h, spacing)
+    low = torch.nonzero(z < floor_h).flatten()  # signs and posters are on the ground floor only
+    if low.numel():
+        out[low] = _signs(out[low], s[low], z[low], f[low], floor_h[low], spacing[low])
+    return out
 
 
 def hash01(i: Tensor, salt: int) -> Tensor:
