@@ -1,0 +1,237 @@
+"""Correspondences between adjacent cameras over a window: all T x T frame pairs of each adjacent pair,
+restricted to the predicted overlap, as unit rays, with outliers removed per image pair."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..progress import progress
+from .features import Keypoints, load_loftr, loftr_match, match_descriptors, sift_features
+from .outliers import epipolar_angle_deg, essential_inliers
+from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
+
+MATCHERS = ("sift", "loftr")
+STAGES = ("features", "matching", "ransac", "adjustment")
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Settings of correspondence search and outlier removal."""
+
+    matcher: str = "sift"
+    loftr_weights: str | None = None
+    max_features: int = 4000
+    contrast_threshold: float = 0.04
+    feature_scale: float = 1.0
+    ratio: float = 0.8
+    margin_px: float = 24.0
+    epipolar_gate_deg: float = 5.0
+    ransac_threshold_px: float = 1.0
+    ransac_prob: float = 0.999
+    max_per_view_pair: int = 150
+    min_per_view_pair: int = 15
+    sigma_per_size: float = 1.0 / 32.0
+    sigma_floor_px: float = 0.1
+    loftr_sigma_px: float = 0.5
+    cross_time: bool = True
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        """JSON-able settings (for the calibration block)."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass
+class PairMatches:
+    """Inlier correspondences of one adjacent camera pair (a, b) over a window (frames are window indices)."""
+
+    cam_a: str
+    cam_b: str
+    frame_a: np.ndarray
+    frame_b: np.ndarray
+    uv_a: np.ndarray
+    uv_b: np.ndarray
+    rays_a: np.ndarray
+    rays_b: np.ndarray
+    sigma_px: np.ndarray
+    tentative: int = 0
+    gated: int = 0
+    inliers: int = 0
+    view_pairs: int = 0
+
+    def __len__(self) -> int:
+        return int(self.frame_a.shape[0])
+
+    def select(self, keep: np.ndarray) -> PairMatches:
+        """A copy restricted to some correspondences (counts kept)."""
+        n = int(np.count_nonzero(keep)) if keep.dtype == bool else int(keep.size)
+        return PairMatches(self.cam_a, self.cam_b, self.frame_a[keep], self.frame_b[keep], self.uv_a[keep],
+                           self.uv_b[keep], self.rays_a[keep], self.rays_b[keep], self.sigma_px[keep],
+                           self.tentative, self.gated, n, self.view_pairs)
+
+    def same_time(self) -> PairMatches:
+        """Only the correspondences between images of the same frame."""
+        return self.select(self.frame_a == self.frame_b)
+
+
+@dataclass
+class Timings:
+    """Seconds spent per stage."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+
+    def add(self, stage: str, t0: float) -> None:
+        """Add the time since `t0` (time.perf_counter) to a stage."""
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def _empty(a: str, b: str) -> PairMatches:
+    z2, z3, zi = np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+    return PairMatches(a, b, zi, zi, z2, z2, z3, z3, np.zeros(0))
+
+
+def find_correspondences(
+    cameras: Sequence[Camera],
+    pairs: Sequence[tuple[str, str]],
+    ego_to_world: np.ndarray,
+    image: Callable[[int, str], np.ndarray],
+    masks: dict[str, np.ndarray] | None = None,
+    config: MatchConfig | None = None,
+    timings: Timings | None = None,
+    show_progress: bool | None = None,
+) -> list[PairMatches]:
+    """Correspondences of every adjacent pair over the window whose ego poses are `ego_to_world` (T, 4, 4).
+
+    `image(t, camera)` returns the RGB image of a camera at window frame t; `masks` (True = use) hides the
+    ego body. The initial extrinsics of `cameras` predict the overlaps and the loose epipolar gate.
+    """
+    cfg = config or MatchConfig()
+    if cfg.matcher not in MATCHERS:
+        raise InputError(None, "matcher", f"unknown matcher {cfg.matcher!r} (expected {', '.join(MATCHERS)})")
+    timings = timings or Timings()
+    cams = {c.name: c for c in cameras}
+    T = ego_to_world.shape[0]
+    rng = np.random.default_rng(cfg.seed)
+    loftr = load_loftr(cfg.loftr_weights) if cfg.matcher == "loftr" else None
+
+    t0 = time.perf_counter()
+    grids: dict[tuple[str, str], OverlapGrid] = {}
+    for a, b in pairs:
+        grids[(a, b)] = overlap_grid(cams[a], cams[b], ego_to_world, cfg.margin_px)
+        grids[(b, a)] = overlap_grid(cams[b], cams[a], ego_to_world, cfg.margin_px)
+    timings.add("matching", t0)
+
+    involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
+    cache: dict[tuple[int, str], np.ndarray] = {}
+
+    def img(t: int, name: str) -> np.ndarray:
+        if (t, name) not in cache:
+            cache[(t, name)] = image(t, name)
+        return cache[(t, name)]
+
+    feats: dict[tuple[int, str], Keypoints] = {}
+    if loftr is None:
+        t0 = time.perf_counter()
+        for name in progress(involved, desc="calibrate: features", enabled=show_progress):
+            cam = cams[name]
+            det = np.zeros((cam.height, cam.width), np.uint8)
+            for (x, _), g in grids.items():
+                if x == name:
+                    det |= g.any_mask(cam.width, cam.height)
+            if masks is not None and name in masks:
+                det[~np.asarray(masks[name], bool)] = 0
+            for t in range(T):
+                feats[(t, name)] = sift_features(img(t, name), det, cfg.max_features, cfg.feature_scale,
+                                               cfg.contrast_threshold)
+        timings.add("features", t0)
+
+    out = []
+    jobs = [(a, b, t, t2) for a, b in pairs for t in range(T) for t2 in range(T) if cfg.cross_time or t == t2]
+    collected: dict[tuple[str, str], list] = {(a, b): [] for a, b in pairs}
+    counts = {(a, b): [0, 0, 0] for a, b in pairs}
+    poses = {n: np.einsum("tij,jk->tik", ego_to_world, cams[n].sensor_to_ego) for n in involved}
+    for a, b, t, t2 in progress(jobs, desc="calibrate: matching", total=len(jobs), enabled=show_progress):
+        ca, cb = cams[a], cams[b]
+        t0 = time.perf_counter()
+        if loftr is None:
+            fa, fb = feats[(t, a)], feats[(t2, b)]
+            sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv))
+            sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv))
+            ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
+            uva, uvb = sa.uv[ia], sb.uv[ib]
+            sig = np.maximum(cfg.sigma_floor_px, np.maximum(sa.size[ia], sb.size[ib]) * cfg.sigma_per_size)
+        else:
+            uva, uvb = loftr_match(loftr, img(t, a), img(t2, b), _box(grids[(a, b)], t, t2, ca),
+                                   _box(grids[(b, a)], t2, t, cb))
+            keep = grids[(a, b)].lookup(t, t2, uva) & grids[(b, a)].lookup(t2, t, uvb)
+            if masks is not None:
+                keep &= _in_mask(masks.get(a), uva) & _in_mask(masks.get(b), uvb)
+            uva, uvb = uva[keep], uvb[keep]
+            sig = np.full(uva.shape[0], cfg.loftr_sigma_px)
+        timings.add("matching", t0)
+        t0 = time.perf_counter()
+        ra, va = ca.intrinsics.unproject(uva)
+        rb, vb = cb.intrinsics.unproject(uvb)
+        ok = va & vb
+        counts[(a, b)][0] += int(ok.sum())
+        uva, uvb, ra, rb, sig = uva[ok], uvb[ok], ra[ok], rb[ok], sig[ok]
+        rel = np.linalg.inv(poses[b][t2]) @ poses[a][t]  # cam a at t -> cam b at t2 (initial)
+        gate = epipolar_angle_deg(ra, rb, rel[:3, :3], rel[:3, 3]) <= cfg.epipolar_gate_deg
+        uva, uvb, ra, rb, sig = uva[gate], uvb[gate], ra[gate], rb[gate], sig[gate]
+        counts[(a, b)][1] += int(gate.sum())
+        focal = min(pixels_per_radian(ca.intrinsics), pixels_per_radian(cb.intrinsics))
+        inl = essential_inliers(ra, rb, cfg.ransac_threshold_px, focal, cfg.ransac_prob, seed=cfg.seed)
+        if inl.sum() < cfg.min_per_view_pair:  # a handful of matches fits a spurious essential matrix
+            inl[:] = False
+        idx = np.flatnonzero(inl)
+        if idx.size:
+            counts[(a, b)][2] += 1
+        if idx.size > cfg.max_per_view_pair:
+            idx = np.sort(rng.choice(idx, cfg.max_per_view_pair, replace=False))
+        if idx.size:
+            collected[(a, b)].append((t, t2, uva[idx], uvb[idx], ra[idx], rb[idx], int(inl.sum()), sig[idx]))
+        timings.add("ransac", t0)
+
+    for a, b in pairs:
+        parts = collected[(a, b)]
+        if not parts:
+            pm = _empty(a, b)
+        else:
+            pm = PairMatches(
+                a, b,
+                np.concatenate([np.full(p[2].shape[0], p[0]) for p in parts]).astype(np.int64),
+                np.concatenate([np.full(p[2].shape[0], p[1]) for p in parts]).astype(np.int64),
+                np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts]),
+                np.concatenate([p[4] for p in parts]), np.concatenate([p[5] for p in parts]),
+                np.concatenate([p[7] for p in parts]),
+            )
+            pm.inliers = int(sum(p[6] for p in parts))
+        pm.tentative, pm.gated, pm.view_pairs = counts[(a, b)]
+        out.append(pm)
+    return out
+
+
+def _box(grid: OverlapGrid, t: int, t2: int, cam: Camera) -> tuple[int, int, int, int] | None:
+    """Bounding box (x0, y0, x1, y1) of a coarse overlap mask, in native pixels; None when empty."""
+    m = grid.mask[t, t2]
+    if not m.any():
+        return None
+    rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+    s = grid.stride
+    return (max(0, int(cols[0]) * s - s), max(0, int(rows[0]) * s - s),
+            min(cam.width, int(cols[-1]) * s + s), min(cam.height, int(rows[-1]) * s + s))
+
+
+def _in_mask(mask: np.ndarray | None, uv: np.ndarray) -> np.ndarray:
+    if mask is None or uv.shape[0] == 0:
+        return np.ones(uv.shape[0], dtype=bool)
+    h, w = mask.shape
+    col = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
+    row = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
+    return np.asarray(mask, bool)[row, col]

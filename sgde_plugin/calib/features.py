@@ -1,0 +1,143 @@
+"""Features and tentative matches: SIFT (OpenCV, default) or LoFTR (kornia, weights from a local file)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+
+
+@dataclass
+class Keypoints:
+    """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels."""
+
+    uv: np.ndarray
+    desc: np.ndarray
+    size: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+    def subset(self, keep: np.ndarray) -> Keypoints:
+        """The keypoints selected by a boolean mask or index array."""
+        return Keypoints(self.uv[keep], self.desc[keep], None if self.size is None else self.size[keep])
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """uint8 grey image of an RGB (or grey) image."""
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    return img
+
+
+def sift_features(
+    image: np.ndarray, mask: np.ndarray | None = None, max_features: int = 4000, scale: float = 1.0,
+    contrast_threshold: float = 0.04,
+) -> Keypoints:
+    """SIFT keypoints of an image (optionally downscaled by `scale` for speed), positions in native pixels."""
+    gray = to_gray(image)
+    if scale != 1.0:
+        h, w = gray.shape
+        size = (max(8, int(round(w * scale))), max(8, int(round(h * scale))))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        if mask is not None:
+            mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
+    kps, desc = sift.detectAndCompute(gray, mask)
+    if desc is None or not kps:
+        return Keypoints(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0))
+    uv = np.array([k.pt for k in kps], dtype=np.float64)
+    size = np.array([k.size for k in kps], dtype=np.float64) / scale
+    if scale != 1.0:
+        uv = (uv + 0.5) / scale - 0.5  # pixel-centre convention
+    return Keypoints(uv, desc.astype(np.float32), size)
+
+
+def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours that pass Lowe's ratio test in both directions: index arrays (ia, ib)."""
+    if desc_a.shape[0] < 2 or desc_b.shape[0] < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+
+    def best(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        knn = bf.knnMatch(d1, d2, k=2)
+        out = np.full(d1.shape[0], -1)
+        for m in knn:
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                out[m[0].queryIdx] = m[0].trainIdx
+        return out
+
+    ab = best(desc_a, desc_b)
+    ba = best(desc_b, desc_a)
+    ia = np.flatnonzero(ab >= 0)
+    ib = ab[ia]
+    mutual = ba[ib] == ia
+    return ia[mutual], ib[mutual]
+
+
+def load_loftr(weights: str | Path | None):
+    """A kornia LoFTR built without downloading, weights from a local checkpoint (torch.load weights_only).
+
+    The file may hold a plain state dict or a Lightning-style {"state_dict": ...}. A missing path or a
+    file that does not fit the model is an InputError.
+    """
+    import torch
+    from kornia.feature import LoFTR
+
+    if weights is None:
+        raise InputError(None, "--loftr-weights", "LoFTR needs a local checkpoint path (nothing is downloaded)")
+    path = Path(weights)
+    if not path.is_file():
+        raise InputError(path, None, "LoFTR checkpoint not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is bad input
+        raise InputError(path, None, f"cannot load LoFTR checkpoint ({type(exc).__name__}: {exc})") from None
+    if isinstance(state, dict) and "state_dict" in state:
+        state = state["state_dict"]
+    model = LoFTR(pretrained=None)
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        raise InputError(path, None, f"checkpoint does not fit kornia's LoFTR ({str(exc).splitlines()[0]})") from None
+    return model.eval()
+
+
+def _box_crop(gray: np.ndarray, box: tuple[int, int, int, int] | None) -> tuple[np.ndarray, int, int]:
+    """Crop to box (x0, y0, x1, y1) enlarged to multiples of 8 inside the image; returns crop and offset."""
+    h, w = gray.shape
+    x0, y0, x1, y1 = box if box is not None else (0, 0, w, h)
+    x0, y0 = max(0, x0 - x0 % 8), max(0, y0 - y0 % 8)
+    x1, y1 = min(w, x1), min(h, y1)
+    x1 = x0 + max(8, ((x1 - x0) // 8) * 8)
+    y1 = y0 + max(8, ((y1 - y0) // 8) * 8)
+    return gray[y0:y1, x0:x1], x0, y0
+
+
+def loftr_match(
+    model, image_a: np.ndarray, image_b: np.ndarray, box_a=None, box_b=None, min_confidence: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """LoFTR matches between two images, optionally inside boxes (x0, y0, x1, y1): native pixels (N, 2) x 2."""
+    import torch
+
+    ga, xa, ya = _box_crop(to_gray(image_a), box_a)
+    gb, xb, yb = _box_crop(to_gray(image_b), box_b)
+    if min(ga.shape) < 16 or min(gb.shape) < 16:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    with torch.inference_mode():
+        out = model({
+            "image0": torch.from_numpy(ga).float()[None, None] / 255.0,
+            "image1": torch.from_numpy(gb).float()[None, None] / 255.0,
+        })
+    conf = out["confidence"].numpy()
+    keep = conf >= min_confidence
+    uv_a = out["keypoints0"].numpy()[keep].astype(np.float64) + [xa, ya]
+    uv_b = out["keypoints1"].numpy()[keep].astype(np.float64) + [xb, yb]
+    return uv_a, uv_b

@@ -1,0 +1,218 @@
+"""The four calibration methods of the ablation, run on one window's correspondences.
+
+* `none`: the input (data-set) extrinsics.
+* `pairwise`: each adjacent pair alone, from its same-frame correspondences only (a stereo pair):
+  the essential matrix of the pooled matches gives the relative rotation and the direction of the
+  baseline, whose length is kept from the input extrinsics; a two-view adjustment (the adjustment of
+  `ba.py` restricted to the two cameras and to same-frame matches, so the ego motion adds nothing)
+  refines it.
+* `wo-glc` (the paper's "w/o GLC", two cameras only): each adjacent pair alone, with all T x T frame
+  pairs and the ego-anchored adjustment of `ba.py`, so the same metric bundle adjustment as `glc`
+  but without the other cameras and without the ring.
+* `glc`: one adjustment over all cameras and all adjacent pairs including last-to-first.
+
+The per-pair methods produce relative poses that do not close around the ring, so the extrinsics
+are chained from the reference camera along a breadth-first spanning tree of the adjacency graph;
+the pair(s) outside the tree (for a ring: the one opposite the reference) are not used and inherit
+the accumulated chain error. That open loop is what the geometric loop constraint removes.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..cameras import Camera
+from .ba import AdjustConfig, AdjustResult, Observations, robust_adjust
+from .correspondences import PairMatches
+from .outliers import rotation_to_z
+from .overlap import pixels_per_radian
+
+METHODS = ("none", "pairwise", "wo-glc", "glc")
+
+
+@dataclass
+class MethodResult:
+    """Refined extrinsics and solver facts of one method on one window."""
+
+    sensor_to_ego: dict[str, np.ndarray]
+    iterations: int = 0
+    converged: bool = True
+    message: str = ""
+    used_pairs: list[tuple[str, str]] = field(default_factory=list)
+    pair_rms_px: dict[tuple[str, str], float] = field(default_factory=dict)
+    pair_used_matches: dict[tuple[str, str], int] = field(default_factory=dict)
+    rms_before_px: float = float("nan")
+    rms_after_px: float = float("nan")
+
+
+def spanning_tree(names: Sequence[str], pairs: Sequence[tuple[str, str]], root: str) -> list[tuple[str, str]]:
+    """Edges (parent, child) of a breadth-first spanning tree of the adjacency graph from `root`."""
+    nbrs: dict[str, list[str]] = {n: [] for n in names}
+    for a, b in pairs:
+        nbrs[a].append(b)
+        nbrs[b].append(a)
+    seen, edges, queue = {root}, [], deque([root])
+    while queue:
+        p = queue.popleft()
+        for c in nbrs[p]:
+            if c not in seen:
+                seen.add(c)
+                edges.append((p, c))
+                queue.append(c)
+    return edges
+
+
+def observations(matches: Sequence[PairMatches], index: dict[str, int]) -> tuple[Observations, np.ndarray]:
+    """Two observations per correspondence (one 3-D point each) and the pair index of each observation."""
+    cams, frames, pts, rays, sig, pair_of = [], [], [], [], [], []
+    n = 0
+    for k, pm in enumerate(matches):
+        m = len(pm)
+        ids = np.arange(n, n + m)
+        n += m
+        cams += [np.full(m, index[pm.cam_a]), np.full(m, index[pm.cam_b])]
+        frames += [pm.frame_a, pm.frame_b]
+        pts += [ids, ids]
+        rays += [pm.rays_a, pm.rays_b]
+        sig += [pm.sigma_px, pm.sigma_px]
+        pair_of += [np.full(2 * m, k)]
+    if n == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return Observations(z, z, z, np.zeros((0, 3)), np.zeros(0)), z
+    obs = Observations(np.concatenate(cams).astype(np.int64), np.concatenate(frames).astype(np.int64),
+                       np.concatenate(pts).astype(np.int64), np.concatenate(rays), np.concatenate(sig))
+    # observations are stored a-block then b-block per pair: the pair index repeats accordingly
+    return obs, np.concatenate(pair_of)
+
+
+def _pair_rms(res: AdjustResult, kept: np.ndarray, pair_of: np.ndarray, n_pairs: int) -> tuple[list, list]:
+    err2 = np.sum(res.residual_px**2, axis=1)
+    kp = pair_of[kept]
+    rms, used = [], []
+    for k in range(n_pairs):
+        m = kp == k
+        rms.append(float(np.sqrt(err2[m].mean())) if m.any() else float("nan"))
+        used.append(int(m.sum() // 2))
+    return rms, used
+
+
+def _adjust_cameras(
+    cameras: Sequence[Camera], matches: Sequence[PairMatches], ego_to_world: np.ndarray, reference: str,
+    config: AdjustConfig,
+) -> tuple[dict[str, np.ndarray], AdjustResult, list[float], list[int]]:
+    names = [c.name for c in cameras]
+    index = {n: i for i, n in enumerate(names)}
+    obs, pair_of = observations(matches, index)
+    S0 = np.stack([c.sensor_to_ego for c in cameras])
+    focal = np.array([pixels_per_radian(c.intrinsics) for c in cameras])
+    res, kept = robust_adjust(S0, ego_to_world, obs, focal, index[reference], config)
+    rms, used = _pair_rms(res, kept, pair_of, len(matches))
+    return {n: res.sensor_to_ego[i] for i, n in enumerate(names)}, res, rms, used
+
+
+def run_glc(
+    cameras: Sequence[Camera], matches: Sequence[PairMatches], ego_to_world: np.ndarray, reference: str,
+    config: AdjustConfig | None = None,
+) -> MethodResult:
+    """One loop-constrained adjustment over all cameras and all adjacent pairs."""
+    cfg = config or AdjustConfig()
+    ext, res, rms, used = _adjust_cameras(cameras, matches, ego_to_world, reference, cfg)
+    pairs = [(m.cam_a, m.cam_b) for m in matches]
+    return MethodResult(ext, res.iterations, res.converged, res.message, pairs, dict(zip(pairs, rms)),
+                        dict(zip(pairs, used)), res.initial_rms_px, res.final_rms_px)
+
+
+def relative_pose_from_rays(rays_a: np.ndarray, rays_b: np.ndarray, focal_px: float,
+                            threshold_px: float = 1.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R, t_unit) with X_b = R X_a + t from ray matches: essential matrix (USAC) and its decomposition."""
+    if rays_a.shape[0] < 8:
+        return None
+    Ra, Rb = rotation_to_z(rays_a.mean(axis=0)), rotation_to_z(rays_b.mean(axis=0))
+    va, vb = rays_a @ Ra.T, rays_b @ Rb.T
+    ok = (va[:, 2] > 0.2) & (vb[:, 2] > 0.2)
+    if ok.sum() < 8:
+        return None
+    pa = va[ok, :2] / va[ok, 2:3]
+    pb = vb[ok, :2] / vb[ok, 2:3]
+    E, mask = cv2.findEssentialMat(pa, pb, np.eye(3), method=cv2.USAC_ACCURATE, prob=0.999,
+                                   threshold=threshold_px / focal_px)
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R, t, _ = cv2.recoverPose(E, pa, pb, np.eye(3), mask=mask)
+    # back from the rotated frames: X_b' = R X_a' + t with X' = R_x X
+    return Rb.T @ R @ Ra, Rb.T @ t.ravel()
+
+
+def _chain(
+    cameras: Sequence[Camera], pairs: Sequence[tuple[str, str]], matches: Sequence[PairMatches],
+    ego_to_world: np.ndarray, reference: str, config: AdjustConfig, same_time: bool,
+) -> MethodResult:
+    cams = {c.name: c for c in cameras}
+    by_pair = {frozenset((m.cam_a, m.cam_b)): m for m in matches}
+    tree = spanning_tree(list(cams), pairs, reference)
+    out = {reference: cams[reference].sensor_to_ego.copy()}
+    result = MethodResult(out)
+    iterations, converged, msgs, rms_b, rms_a = 0, True, [], [], []
+    for p, c in tree:
+        pm = by_pair[frozenset((p, c))]
+        if same_time:
+            pm = pm.same_time()
+        cp, cc = cams[p], cams[c]
+        if same_time:
+            cc = cc.with_pose(_essential_init(cp, cc, pm) if len(pm) else cc.sensor_to_ego)
+        ext, res, rms, used = _adjust_cameras([cp, cc], [pm], ego_to_world, p, config)
+        Q = np.linalg.inv(cp.sensor_to_ego) @ ext[c]  # child in the parent's frame
+        out[c] = out[p] @ Q
+        key = (pm.cam_a, pm.cam_b)
+        result.used_pairs.append(key)
+        result.pair_rms_px[key] = rms[0]
+        result.pair_used_matches[key] = used[0]
+        iterations = max(iterations, res.iterations)
+        converged &= res.converged
+        msgs.append(f"{p}-{c}: {res.message}")
+        rms_b.append(res.initial_rms_px)
+        rms_a.append(res.final_rms_px)
+    for name, cam in cams.items():
+        out.setdefault(name, cam.sensor_to_ego.copy())
+    result.iterations, result.converged, result.message = iterations, converged, "; ".join(msgs)
+    result.rms_before_px = float(np.nanmean(rms_b)) if rms_b else float("nan")
+    result.rms_after_px = float(np.nanmean(rms_a)) if rms_a else float("nan")
+    return result
+
+
+def _essential_init(cp: Camera, cc: Camera, pm: PairMatches) -> np.ndarray:
+    """Child extrinsic from the essential matrix of same-frame matches, baseline length kept from the input."""
+    flip = pm.cam_a != cp.name
+    ra, rb = (pm.rays_b, pm.rays_a) if flip else (pm.rays_a, pm.rays_b)
+    focal = min(pixels_per_radian(cp.intrinsics), pixels_per_radian(cc.intrinsics))
+    est = relative_pose_from_rays(ra, rb, focal)
+    if est is None:
+        return cc.sensor_to_ego
+    R, t = est  # X_c = R X_p + t
+    rel0 = np.linalg.inv(cc.sensor_to_ego) @ cp.sensor_to_ego  # parent -> child, input
+    length = np.linalg.norm(rel0[:3, 3])
+    if t @ rel0[:3, 3] < 0:
+        t = -t
+    rel = np.eye(4)
+    rel[:3, :3], rel[:3, 3] = R, t / max(np.linalg.norm(t), 1e-12) * length
+    return cp.sensor_to_ego @ np.linalg.inv(rel)
+
+
+def run_method(
+    method: str, cameras: Sequence[Camera], pairs: Sequence[tuple[str, str]], matches: Sequence[PairMatches],
+    ego_to_world: np.ndarray, reference: str, config: AdjustConfig | None = None,
+) -> MethodResult:
+    """Run one of METHODS on one window's correspondences."""
+    cfg = config or AdjustConfig()
+    if method == "none":
+        return MethodResult({c.name: c.sensor_to_ego.copy() for c in cameras}, message="input extrinsics kept")
+    if method == "glc":
+        return run_glc(cameras, matches, ego_to_world, reference, cfg)
+    if method in ("wo-glc", "pairwise"):
+        return _chain(cameras, pairs, matches, ego_to_world, reference, cfg, same_time=method == "pairwise")
+    raise ValueError(f"unknown method {method!r} (expected one of {', '.join(METHODS)})")

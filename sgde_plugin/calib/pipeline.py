@@ -1,0 +1,250 @@
+"""`calibrate`: windows of T frames -> correspondences -> method -> acceptance -> refined rig + report.
+
+The selected frames are split, in timestamp order, into consecutive windows of `window` frames. Each
+window starts from the calibration in effect at its first timestamp (the last accepted one, or the
+input extrinsics), is calibrated, and is accepted or rejected by the paper's rules. A rejected window
+keeps the last accepted calibration. The returned rig carries the last accepted calibration and a
+`calibration` block whose `history` lists every accepted calibration with the timestamp from which
+it applies (`calibration_at` looks one up); history from an input rig's block is carried forward.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from ..cameras import Camera
+from ..errors import InputError
+from ..geometry import ORTHONORMAL_TOL, rotation_error
+from ..rig import Frame, Rig
+from .acceptance import AcceptanceRules, Verdict, check_correspondences, check_result, default_beta
+from .ba import AdjustConfig
+from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences
+from .lie import angle_deg
+from .methods import METHODS, MethodResult, run_method
+from .threads import torch_threads
+
+CALIB_VERSION = "1"
+DEFAULT_WINDOW = 7
+
+
+def check_extrinsics(rig: Rig) -> None:
+    """InputError (exit code 2) for a NaN, infinite or non-orthonormal initial extrinsic."""
+    for cam in rig.cameras:
+        T = np.asarray(cam.sensor_to_ego, dtype=np.float64)
+        key = f"cameras[{cam.name}].sensor_to_ego"
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InputError(rig.root, key, "contains NaN or infinity")
+        err = rotation_error(T[:3, :3])
+        if err > ORTHONORMAL_TOL:
+            raise InputError(rig.root, key, f"rotation is not orthonormal (error {err:.2g} > 1e-6)")
+    for fr in rig.frames:
+        if not np.all(np.isfinite(fr.ego_to_world)) or rotation_error(fr.ego_to_world[:3, :3]) > ORTHONORMAL_TOL:
+            raise InputError(rig.root, f"frames[{fr.id}].ego_to_world", "not a finite rigid transform")
+
+
+def reference_camera(rig: Rig) -> str:
+    """The camera that carries the gauge: first of the ring, else the first camera of the first pair."""
+    if rig.ring:
+        return rig.ring[0]
+    if rig.pairs:
+        return rig.pairs[0][0]
+    return rig.camera_names[0]
+
+
+def _matrix_dict(ext: Mapping[str, np.ndarray]) -> dict[str, list]:
+    return {k: np.asarray(v, dtype=np.float64).tolist() for k, v in ext.items()}
+
+
+def calibration_at(block: Mapping[str, Any], timestamp_us: int) -> dict[str, np.ndarray] | None:
+    """Extrinsics of the last accepted calibration whose window starts at or before `timestamp_us`."""
+    best = None
+    for entry in block.get("history", []):
+        ts = entry.get("from_timestamp_us")
+        if ts is not None and ts <= timestamp_us and (best is None or ts >= best["from_timestamp_us"]):
+            best = entry
+    if best is None:
+        return None
+    return {k: np.asarray(v, dtype=np.float64) for k, v in best["sensor_to_ego"].items()}
+
+
+def _windows(frames: tuple[Frame, ...], size: int) -> list[tuple[Frame, ...]]:
+    ordered = tuple(sorted(frames, key=lambda f: f.timestamp_us))
+    return [ordered[i : i + size] for i in range(0, len(ordered), size)]
+
+
+def _pair_rows(matches: list[PairMatches], result: MethodResult | None) -> list[dict]:
+    rows = []
+    for pm in matches:
+        key = (pm.cam_a, pm.cam_b)
+        used = result is not None and key in result.pair_rms_px
+        rows.append({
+            "a": pm.cam_a,
+            "b": pm.cam_b,
+            "tentative": int(pm.tentative),
+            "after_gate": int(pm.gated),
+            "inliers": int(pm.inliers),
+            "image_pairs_with_inliers": int(pm.view_pairs),
+            "used_in_adjustment": bool(used),
+            "adjusted_correspondences": int(result.pair_used_matches.get(key, 0)) if used else 0,
+            "rms_px": float(result.pair_rms_px[key]) if used and np.isfinite(result.pair_rms_px[key]) else None,
+        })
+    return rows
+
+
+def _changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], pairs) -> tuple[float, float]:
+    rot, trans = 0.0, 0.0
+    for a, b in pairs:
+        r0 = np.linalg.inv(before[a]) @ before[b]
+        r1 = np.linalg.inv(after[a]) @ after[b]
+        rot = max(rot, float(angle_deg(r0[:3, :3].T @ r1[:3, :3])))
+        trans = max(trans, float(np.linalg.norm(r1[:3, 3] - r0[:3, 3])))
+    return rot, trans
+
+
+def calibrate(
+    rig: Rig,
+    images: Callable[[str, str], np.ndarray] | None = None,
+    method: str = "glc",
+    frames: slice | None = None,
+    matcher: str = "sift",
+    **options: Any,
+) -> tuple[Rig, dict]:
+    """Calibrate the extrinsics of a rig over windows of its frames; returns the refined rig and its report.
+
+    images(frame_id, camera) -> RGB image (default: the rig folder's files). Options: window (T, default
+    7), loftr_weights, rules (AcceptanceRules; default beta for the rig's data set, see
+    acceptance.default_beta, 200 iterations, alpha = 0.3 m), match_config, adjust_config, reference,
+    timings, show_progress.
+    """
+    with torch_threads(1):
+        return _calibrate(rig, images, method, frames, matcher, **options)
+
+
+def _calibrate(
+    rig: Rig,
+    images: Callable[[str, str], np.ndarray] | None = None,
+    method: str = "glc",
+    frames: slice | None = None,
+    matcher: str = "sift",
+    *,
+    window: int = DEFAULT_WINDOW,
+    loftr_weights: str | None = None,
+    rules: AcceptanceRules | None = None,
+    match_config: MatchConfig | None = None,
+    adjust_config: AdjustConfig | None = None,
+    reference: str | None = None,
+    timings: Timings | None = None,
+    show_progress: bool | None = None,
+) -> tuple[Rig, dict]:
+    if method not in METHODS:
+        raise InputError(None, "method", f"unknown method {method!r} (expected one of {', '.join(METHODS)})")
+    if matcher not in MATCHERS:
+        raise InputError(None, "matcher", f"unknown matcher {matcher!r} (expected one of {', '.join(MATCHERS)})")
+    if window < 1:
+        raise InputError(None, "window", "must be at least 1 frame")
+    check_extrinsics(rig)
+    selected = rig.frames if frames is None else rig.frames[frames]
+    if not selected:
+        raise InputError(rig.root, "frames", "the frame selection is empty")
+    if not rig.pairs:
+        raise InputError(rig.root, "ring/pairs", "the rig has no adjacent pairs to calibrate")
+    ref = reference or reference_camera(rig)
+    if ref not in rig.camera_names:
+        raise InputError(None, "reference", f"camera {ref!r} does not exist")
+    rules = rules or AcceptanceRules(min_correspondences=default_beta(rig))
+    mcfg = replace(match_config or MatchConfig(), matcher=matcher)
+    if loftr_weights is not None:
+        mcfg = replace(mcfg, loftr_weights=str(loftr_weights))
+    acfg = replace(adjust_config or AdjustConfig(), max_iterations=rules.max_iterations)
+    load = images or rig.load_image
+    masks = {c: m for c in rig.camera_names if (m := rig.load_mask(c)) is not None}
+    timings = timings or Timings()
+    pair_names = list(rig.pairs)
+    involved = {n for p in pair_names for n in p}
+
+    old_block = rig.extra.get("calibration") if isinstance(rig.extra, Mapping) else None
+    history: list[dict] = list(old_block.get("history", [])) if isinstance(old_block, Mapping) else []
+    input_ext = {c.name: np.asarray(c.sensor_to_ego, dtype=np.float64) for c in rig.cameras}
+    current = dict(input_ext)
+    reports = []
+    for k, win in enumerate(_windows(tuple(selected), window)):
+        ts = int(win[0].timestamp_us)
+        start = calibration_at({"history": history}, ts) or dict(current)
+        start = {**input_ext, **start}
+        cams = [Camera(c.name, c.intrinsics, start[c.name]) for c in rig.cameras if c.name in involved]
+        ego = np.stack([f.ego_to_world for f in win])
+        win_report: dict[str, Any] = {
+            "index": k, "frames": [f.id for f in win], "timestamp_us": ts,
+        }
+        t_win = time.perf_counter()
+        before = dict(timings.seconds)
+        result: MethodResult | None = None
+        matches: list[PairMatches] = []
+        if method == "none":
+            verdict = Verdict(True, None, None)
+            result = MethodResult({n: start[n] for n in start}, message="input extrinsics kept")
+        else:
+            ids = [f.id for f in win]
+            matches = find_correspondences(cams, pair_names, ego, lambda t, c, ids=ids: load(ids[t], c), masks or None,
+                                           mcfg, timings, show_progress)
+            verdict = check_correspondences({(m.cam_a, m.cam_b): m.inliers for m in matches}, rules)
+            if verdict.accepted:
+                t0 = time.perf_counter()
+                result = run_method(method, cams, pair_names, matches, ego, ref, acfg)
+                timings.add("adjustment", t0)
+                after = {**start, **result.sensor_to_ego}
+                verdict = check_result(result.converged, result.iterations, start, after, pair_names, rules)
+        after = {**start, **result.sensor_to_ego} if result is not None else dict(start)
+        rot, trans = _changes(start, after, pair_names)
+        win_report.update({
+            "accepted": verdict.accepted,
+            "rule": verdict.rule,
+            "reason": verdict.reason,
+            "pairs": _pair_rows(matches, result),
+            "iterations": int(result.iterations) if result is not None else 0,
+            "converged": bool(result.converged) if result is not None else False,
+            "message": result.message if result is not None else "",
+            "rms_px_before": _num(result.rms_before_px) if result is not None else None,
+            "rms_px_after": _num(result.rms_after_px) if result is not None else None,
+            "max_rotation_change_deg": rot,
+            "max_translation_change_m": trans,
+            "seconds": {s: round(timings.seconds.get(s, 0.0) - before.get(s, 0.0), 3) for s in timings.seconds},
+            "wall_seconds": round(time.perf_counter() - t_win, 3),
+        })
+        if verdict.accepted and method != "none":
+            history.append({"from_timestamp_us": ts, "window": k, "method": method,
+                            "sensor_to_ego": _matrix_dict(after)})
+            current = after
+        elif verdict.accepted:
+            current = after
+        reports.append(win_report)
+
+    final = calibration_at({"history": history}, int(1 << 62)) if method != "none" else None
+    final = {**input_ext, **(final or current)}
+    accepted_any = any(w["accepted"] for w in reports)
+    first_rejected = next((w for w in reports if not w["accepted"]), None)
+    block = {
+        "version": CALIB_VERSION,
+        "method": method,
+        "matcher": matcher,
+        "reference": ref,
+        "window": window,
+        "rules": rules.to_dict(),
+        "accepted": accepted_any,
+        "rule": None if accepted_any or first_rejected is None else first_rejected["rule"],
+        "reason": None if accepted_any or first_rejected is None else first_rejected["reason"],
+        "windows": reports,
+        "history": history,
+        "seconds": {s: round(v, 3) for s, v in timings.seconds.items()},
+    }
+    out = rig.with_extrinsics(final).with_extra(calibration=block)
+    return out, block
+
+
+def _num(x: float) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
