@@ -19,6 +19,13 @@ from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
 from sgde_plugin.stereo.rectify import torch_threads
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Element-wise camera maths gains nothing from threads, and OpenMP threads crawl on a busy machine."""
+    with torch_threads(1):
+        yield
+
+
 class TinyMatcher(torch.nn.Module):
     """Stand-in learned matcher: box-filtered absolute-difference cost volume and a soft arg-min."""
 

@@ -20,8 +20,16 @@ from sgde_plugin.rig import Rig
 from sgde_plugin.stereo.backproject import fuse_into
 from sgde_plugin.stereo.filters import lr_check
 from sgde_plugin.stereo.pipeline import PRIOR_ALGO_VERSION, PriorBuilder, PriorConfig
+from sgde_plugin.stereo.rectify import torch_threads
 
 GROUND = Plane(np.zeros(3), np.array([0.0, 0, 1]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0]), seed=9)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Element-wise camera maths gains nothing from threads, and OpenMP threads crawl on a busy machine."""
+    with torch_threads(1):
+        yield
 
 
 @functools.cache

@@ -13,7 +13,14 @@ from stereo_scene import fisheye_pair, nuscenes_pair
 
 from sgde_plugin.cameras import Camera
 from sgde_plugin.geometry import camera_mount, invert_transform, transform_points
-from sgde_plugin.stereo.rectify import WarpMaps, rectified_rotation, rectify_pair
+from sgde_plugin.stereo.rectify import WarpMaps, rectified_rotation, rectify_pair, torch_threads
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Element-wise camera maths gains nothing from threads, and OpenMP threads crawl on a busy machine."""
+    with torch_threads(1):
+        yield
 
 
 def _overlap_points(pair, n: int, rng: np.random.Generator, inset: float = 10) -> np.ndarray:

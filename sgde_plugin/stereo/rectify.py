@@ -241,7 +241,8 @@ def camera_maps(
     map_y = uv[..., 1].numpy().astype(np.float32)
     valid = valid.numpy()
     if rim_px > 0:
-        src_valid = src.intrinsics.valid_mask().astype(np.uint8)
+        with torch_threads(1):
+            src_valid = src.intrinsics.valid_mask().astype(np.uint8)
         kernel = np.ones((2 * rim_px + 1, 2 * rim_px + 1), np.uint8)
         inner = cv2.erode(src_valid, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
         iu = np.clip(np.rint(map_x), 0, src.width - 1).astype(np.intp)
