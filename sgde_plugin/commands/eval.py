@@ -1,19 +1,103 @@
-"""`sgde eval`: not implemented yet (see the open issue)."""
+"""`sgde eval DIR --cache CACHE [--json OUT]`: accuracy and coverage of cached depth priors against ground truth."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 
-HELP = "(not implemented yet)"
+HELP = "evaluate cached depth priors against the rig folder's ground truth (accuracy and overlap coverage)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """No arguments until the command exists."""
-    parser.add_argument("rest", nargs=argparse.REMAINDER)
+    """Arguments of `sgde eval`."""
+    parser.add_argument("dir", help="rig folder with ground-truth depth (depth/<frame>/<camera>.png)")
+    parser.add_argument("--cache", required=True, help="prior cache built by `sgde prior`")
+    parser.add_argument("--json", dest="json_out", help="also write the full report to this JSON file")
+    parser.add_argument(
+        "--truth", help="sgde-rig/1 file with the TRUE extrinsics that define the overlap (default: "
+        "DIR/rig_true.json when present, else DIR's own rig)",
+    )
+    parser.add_argument("--max-depth", type=float, default=80.0, help="ground truth beyond this is ignored (80 m)")
+
+
+def _truth_rig(rig, dir_arg: str, truth: str | None):
+    """The rig with the extrinsics that define the true overlap, and where they came from."""
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..rig import read_rig_json
+
+    path = Path(truth) if truth else Path(dir_arg) / "rig_true.json"
+    if not path.is_file():
+        if truth:
+            raise InputError(path, None, "file not found")
+        return rig, "rig.json (no rig_true.json: overlap from the rig's own extrinsics)"
+    true = read_rig_json(path)
+    missing = [c for c in rig.camera_names if c not in true.camera_names]
+    if missing:
+        raise InputError(path, "cameras", f"lacks {', '.join(missing)}")
+    return rig.with_extrinsics({c.name: c.sensor_to_ego for c in true.cameras}), str(path)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Say the command does not exist yet and fail."""
-    print("sgde eval: not implemented yet", file=sys.stderr)
-    return 1
+    """Evaluate every cached frame that has ground truth; print the tables; optionally write JSON."""
+    import json
+
+    from ..cache import PriorCache
+    from ..errors import InputError
+    from ..io import atomic_write_text
+    from ..progress import progress
+    from ..readers.detect import load_rig
+    from ..stereo.evaluate import PriorEvaluator, report_rows
+    from ..tables import format_table
+
+    rig = load_rig(args.dir)
+    rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
+    cache = PriorCache(args.cache)
+    cached_cams = set(cache.cameras())
+    missing = [c for c in rig.camera_names if c not in cached_cams]
+    if missing:
+        raise InputError(args.cache, "cameras", f"has no priors for {', '.join(missing)}")
+    cached = set(cache.frames())
+    frames = [f for f in rig.frames if f.id in cached]
+    if not frames:
+        raise InputError(args.cache, "frames", f"none of the {len(rig.frames)} frames of {args.dir} is in the cache")
+    if not any(f.depths for f in frames):
+        raise InputError(args.dir, "depth", "no ground-truth depth for the cached frames")
+    masks = {c: rig.load_mask(c) for c in rig.camera_names}
+    evaluator = PriorEvaluator(rig_true, args.max_depth)
+    for frame in progress(frames, desc="eval", total=len(frames)):
+        priors = {}
+        for cam in rig.camera_names:
+            depth, valid = cache.get(frame.id, cam)
+            priors[cam] = depth * valid
+        gts = {cam: rig.load_depth(frame.id, cam) for cam in rig.camera_names}
+        evaluator.add(priors, gts, masks)
+    report = evaluator.result()
+    report.update({"rig": str(args.dir), "cache": str(args.cache), "truth": truth_source,
+                   "cache_fingerprint": cache.fingerprint})
+    cams, pairs, overall = report_rows(report)
+    print(f"{args.dir}: {report['frames']} frames, priors from {args.cache}, true overlap from {truth_source}")
+    print()
+    print(format_table(cams))
+    print()
+    print(format_table(pairs))
+    print()
+    print(format_table(overall))
+    if args.json_out:
+        atomic_write_text(args.json_out, json.dumps(_plain(report), indent=1, allow_nan=False) + "\n")
+    return 0
+
+
+def _plain(value):
+    """JSON-safe copy: NaN -> null, NumPy scalars -> Python numbers."""
+    import math
+
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
