@@ -171,7 +171,7 @@ def _street_ends(boxes: _Boxes, rng: np.random.Generator) -> None:
 
 
 def _sidewalks(boxes: _Boxes, rng: np.random.Generator) -> None:
-    seg = 40.0
+    seg = 12.0
     x = STREET_X[0] - 2.0
     while x < STREET_X[1] + 2.0:
         for side in (1.0, -1.0):
