@@ -213,7 +213,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Call
 
 
 def _calibration_row(method: str, refined: Rig, rig_true: Rig, report: dict) -> dict:
-    from .calib.evaluate import relative_pose_errors
+    from .pairs import relative_pose_errors
 
     err = relative_pose_errors(refined, rig_true)
     rot = [e["rotation_deg"] for e in err]

@@ -107,3 +107,17 @@ def pair_geometry(cam_a: Camera, cam_b: Camera, samples: int = 160) -> PairGeome
 def rig_pair_geometry(rig: Rig, samples: int = 160) -> list[PairGeometry]:
     """Pair geometry of every adjacent pair of a rig, in the rig's pair order."""
     return [pair_geometry(rig.camera(a), rig.camera(b), samples) for a, b in rig.pairs]
+
+
+def relative_pose_errors(rig: Rig, reference: Rig) -> list[dict]:
+    """Per adjacent pair: rotation (deg) and translation (m) error of the pair's relative pose vs `reference`."""
+    from .geometry import invert_transform, rotation_angle_deg
+
+    rows = []
+    for a, b in rig.pairs:
+        rel = invert_transform(rig.camera(a).sensor_to_ego) @ rig.camera(b).sensor_to_ego
+        ref = invert_transform(reference.camera(a).sensor_to_ego) @ reference.camera(b).sensor_to_ego
+        delta = invert_transform(ref) @ rel
+        rows.append({"pair": f"{a}-{b}", "rotation_deg": rotation_angle_deg(delta[:3, :3]),
+                     "translation_m": float(np.linalg.norm(rel[:3, 3] - ref[:3, 3]))})
+    return rows

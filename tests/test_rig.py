@@ -171,3 +171,18 @@ def test_left_right_ignores_list_order() -> None:
     assert [c.name for c in left_right(front, front_right)] == ["A", "B"]
     g = pair_geometry(front_right, front)
     assert (g.left, g.right) == ("A", "B")
+
+
+def test_relative_pose_errors_measure_the_perturbation() -> None:
+    from sgde_plugin.geometry import make_transform, rodrigues
+    from sgde_plugin.pairs import relative_pose_errors
+
+    rig = make_rig()
+    cam = rig.camera("CAM_FRONT_RIGHT")
+    bump = make_transform(rodrigues(np.radians([0.0, 0.5, 0.0])), [0.0, 0.0, 0.03])
+    moved = rig.with_extrinsics({cam.name: cam.sensor_to_ego @ bump})
+    errs = {e["pair"]: e for e in relative_pose_errors(moved, rig)}
+    assert abs(errs["CAM_FRONT-CAM_FRONT_RIGHT"]["rotation_deg"] - 0.5) < 1e-9
+    assert abs(errs["CAM_FRONT-CAM_FRONT_RIGHT"]["translation_m"] - 0.03) < 1e-9
+    assert abs(errs["CAM_FRONT_RIGHT-CAM_BACK_RIGHT"]["rotation_deg"] - 0.5) < 1e-9
+    assert errs["CAM_BACK-CAM_BACK_LEFT"]["rotation_deg"] < 1e-9
