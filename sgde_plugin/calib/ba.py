@@ -34,6 +34,8 @@ Gauge and metric scale (the choice made here):
 
 from __future__ import annotations
 
+import os
+import sys
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -494,9 +496,14 @@ def adjust(
     )
 
 
-def select_points(obs: Observations, keep_point: np.ndarray) -> tuple[Observations, np.ndarray, np.ndarray]:
-    """Observations of the kept points renumbered 0..; the mask over `obs`; the kept old point ids."""
-    keep = keep_point[obs.point]
+def select_observations(obs: Observations, keep_obs: np.ndarray) -> tuple[Observations, np.ndarray, np.ndarray]:
+    """Keep some observations, then drop points left with fewer than two; renumber points 0, 1, ...
+
+    Returns the new observations, the mask of kept input observations and the kept points' old ids.
+    """
+    keep = np.asarray(keep_obs, dtype=bool).copy()
+    counts = np.bincount(obs.point[keep], minlength=int(obs.point.max()) + 1 if len(obs) else 0)
+    keep &= counts[obs.point] >= 2
     old_ids, new_ids = np.unique(obs.point[keep], return_inverse=True)
     sigma = None if obs.sigma_px is None else obs.sigma_px[keep]
     sub = Observations(obs.camera[keep], obs.frame[keep], new_ids.astype(np.int64), obs.ray[keep], sigma)
@@ -528,11 +535,11 @@ def robust_adjust(
     """Adjustment in passes with outlier rejection between them; returns the result and the kept observations.
 
     Pass 1 weighs every observation as 1 px under a Cauchy loss, which ignores far outliers (those RANSAC
-    leaves, e.g. on cars that move with the ego, would bend a soft-L1 fit); points with a residual above
-    `coarse_reject_px` are dropped. The later passes use the configured loss (soft-L1 by default). Pass 2 weighs each
-    observation by its own sigma (SIFT keypoints are less precise at coarse scales); points above
-    `fine_reject_sigma` sigmas are dropped and pass 3 polishes. Passes warm-start from the previous one
-    and share one iteration budget (`config.max_iterations`).
+    leaves, e.g. on cars that move with the ego, would bend a soft-L1 fit); observations with a residual
+    above `coarse_reject_px` are dropped (and points left with one observation). Pass 2 weighs each
+    observation by its own sigma (SIFT keypoints are less precise at coarse scales) under the configured
+    loss (soft-L1 by default); observations above `fine_reject_sigma` sigmas are dropped and pass 3
+    polishes. Passes warm-start from the previous one and share one iteration budget.
     """
     cfg = config or AdjustConfig()
     sch = schedule or RobustSchedule()
@@ -543,30 +550,27 @@ def robust_adjust(
     res = adjust(sensor_to_ego, ego_to_world, Observations(obs.camera, obs.frame, obs.point, obs.ray),
                  focal, reference, config=coarse_cfg)
     used = res.iterations
-    import os
-    import sys
-    if os.environ.get("SGDE_BA_DEBUG"):
-        print("coarse", res.iterations, res.message, file=sys.stderr)
-    kept = np.ones(len(obs), dtype=bool)
+    kept_idx = np.arange(len(obs))
     cur_obs = obs
-    for limit, unit in ((sch.coarse_reject_px, None), (sch.fine_reject_sigma, "sigma")):
+    for limit, in_sigmas in ((sch.coarse_reject_px, False), (sch.fine_reject_sigma, True)):
         if budget - used <= 0 or len(cur_obs) == 0:
             break
         err = np.linalg.norm(res.residual_px, axis=1)
-        if unit == "sigma" and cur_obs.sigma_px is not None:
+        if in_sigmas and cur_obs.sigma_px is not None:
             err = err / cur_obs.sigma_px
-        worst = np.zeros(res.points.shape[0])
-        np.maximum.at(worst, cur_obs.point, err)
-        if unit == "sigma" and (worst <= limit).all():
+        good = err <= limit
+        if in_sigmas and good.all():
             break
-        cur_obs, mask, old_ids = select_points(cur_obs, worst <= limit)
-        kept[np.flatnonzero(kept)[~mask]] = False
+        sub, mask, old_ids = select_observations(cur_obs, good)
+        if len(sub) == 0:
+            break
+        cur_obs, kept_idx = sub, kept_idx[mask]
         res = adjust(sensor_to_ego, ego_to_world, cur_obs, focal, reference,
                      config=replace(cfg, max_iterations=budget - used), start=res, start_points=old_ids)
         used += res.iterations
-        import os
-        import sys
         if os.environ.get("SGDE_BA_DEBUG"):
             print("pass", limit, res.iterations, res.message, len(cur_obs), file=sys.stderr)
     res.iterations = used
+    kept = np.zeros(len(obs), dtype=bool)
+    kept[kept_idx] = True
     return res, kept

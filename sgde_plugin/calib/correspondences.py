@@ -59,7 +59,10 @@ class PairMatches:
     uv_b: np.ndarray
     rays_a: np.ndarray
     rays_b: np.ndarray
-    sigma_px: np.ndarray
+    sigma_a: np.ndarray
+    sigma_b: np.ndarray
+    kp_a: np.ndarray  # keypoint index in image (frame_a, cam_a), -1 when the matcher has no keypoints
+    kp_b: np.ndarray
     tentative: int = 0
     gated: int = 0
     inliers: int = 0
@@ -72,8 +75,9 @@ class PairMatches:
         """A copy restricted to some correspondences (counts kept)."""
         n = int(np.count_nonzero(keep)) if keep.dtype == bool else int(keep.size)
         return PairMatches(self.cam_a, self.cam_b, self.frame_a[keep], self.frame_b[keep], self.uv_a[keep],
-                           self.uv_b[keep], self.rays_a[keep], self.rays_b[keep], self.sigma_px[keep],
-                           self.tentative, self.gated, n, self.view_pairs)
+                           self.uv_b[keep], self.rays_a[keep], self.rays_b[keep], self.sigma_a[keep],
+                           self.sigma_b[keep], self.kp_a[keep], self.kp_b[keep], self.tentative, self.gated, n,
+                           self.view_pairs)
 
     def same_time(self) -> PairMatches:
         """Only the correspondences between images of the same frame."""
@@ -92,8 +96,8 @@ class Timings:
 
 
 def _empty(a: str, b: str) -> PairMatches:
-    z2, z3, zi = np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-    return PairMatches(a, b, zi, zi, z2, z2, z3, z3, np.zeros(0))
+    z2, z3, zi, z = np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0)
+    return PairMatches(a, b, zi, zi, z2, z2, z3, z3, z, z, zi, zi)
 
 
 def find_correspondences(
@@ -165,7 +169,9 @@ def find_correspondences(
             sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv))
             ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
             uva, uvb = sa.uv[ia], sb.uv[ib]
-            sig = np.maximum(cfg.sigma_floor_px, np.maximum(sa.size[ia], sb.size[ib]) * cfg.sigma_per_size)
+            ka, kb = sa.index[ia], sb.index[ib]
+            siga = np.maximum(cfg.sigma_floor_px, sa.size[ia] * cfg.sigma_per_size)
+            sigb = np.maximum(cfg.sigma_floor_px, sb.size[ib] * cfg.sigma_per_size)
         else:
             uva, uvb = loftr_match(loftr, img(t, a), img(t2, b), _box(grids[(a, b)], t, t2, ca),
                                    _box(grids[(b, a)], t2, t, cb))
@@ -173,29 +179,33 @@ def find_correspondences(
             if masks is not None:
                 keep &= _in_mask(masks.get(a), uva) & _in_mask(masks.get(b), uvb)
             uva, uvb = uva[keep], uvb[keep]
-            sig = np.full(uva.shape[0], cfg.loftr_sigma_px)
+            siga = sigb = np.full(uva.shape[0], cfg.loftr_sigma_px)
+            ka = kb = np.full(uva.shape[0], -1)
         timings.add("matching", t0)
         t0 = time.perf_counter()
         ra, va = ca.intrinsics.unproject(uva)
         rb, vb = cb.intrinsics.unproject(uvb)
         ok = va & vb
         counts[(a, b)][0] += int(ok.sum())
-        uva, uvb, ra, rb, sig = uva[ok], uvb[ok], ra[ok], rb[ok], sig[ok]
+        sel = np.flatnonzero(ok)
         rel = np.linalg.inv(poses[b][t2]) @ poses[a][t]  # cam a at t -> cam b at t2 (initial)
-        gate = epipolar_angle_deg(ra, rb, rel[:3, :3], rel[:3, 3]) <= cfg.epipolar_gate_deg
-        uva, uvb, ra, rb, sig = uva[gate], uvb[gate], ra[gate], rb[gate], sig[gate]
+        gate = epipolar_angle_deg(ra[sel], rb[sel], rel[:3, :3], rel[:3, 3]) <= cfg.epipolar_gate_deg
+        sel = sel[gate]
         counts[(a, b)][1] += int(gate.sum())
         focal = min(pixels_per_radian(ca.intrinsics), pixels_per_radian(cb.intrinsics))
-        inl = essential_inliers(ra, rb, cfg.ransac_threshold_px, focal, cfg.ransac_prob, seed=cfg.seed)
+        inl = essential_inliers(ra[sel], rb[sel], cfg.ransac_threshold_px, focal, cfg.ransac_prob, seed=cfg.seed)
         if inl.sum() < cfg.min_per_view_pair:  # a handful of matches fits a spurious essential matrix
             inl[:] = False
-        idx = np.flatnonzero(inl)
+        idx = sel[inl]
         if idx.size:
             counts[(a, b)][2] += 1
         if idx.size > cfg.max_per_view_pair:
             idx = np.sort(rng.choice(idx, cfg.max_per_view_pair, replace=False))
         if idx.size:
-            collected[(a, b)].append((t, t2, uva[idx], uvb[idx], ra[idx], rb[idx], int(inl.sum()), sig[idx]))
+            collected[(a, b)].append({
+                "t": t, "t2": t2, "uva": uva[idx], "uvb": uvb[idx], "ra": ra[idx], "rb": rb[idx],
+                "siga": siga[idx], "sigb": sigb[idx], "ka": ka[idx], "kb": kb[idx], "inliers": int(inl.sum()),
+            })
         timings.add("ransac", t0)
 
     for a, b in pairs:
@@ -203,15 +213,15 @@ def find_correspondences(
         if not parts:
             pm = _empty(a, b)
         else:
+            cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("t", "t2", "inliers")}
             pm = PairMatches(
                 a, b,
-                np.concatenate([np.full(p[2].shape[0], p[0]) for p in parts]).astype(np.int64),
-                np.concatenate([np.full(p[2].shape[0], p[1]) for p in parts]).astype(np.int64),
-                np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts]),
-                np.concatenate([p[4] for p in parts]), np.concatenate([p[5] for p in parts]),
-                np.concatenate([p[7] for p in parts]),
+                np.concatenate([np.full(p["uva"].shape[0], p["t"]) for p in parts]).astype(np.int64),
+                np.concatenate([np.full(p["uva"].shape[0], p["t2"]) for p in parts]).astype(np.int64),
+                cat["uva"], cat["uvb"], cat["ra"], cat["rb"], cat["siga"], cat["sigb"],
+                cat["ka"].astype(np.int64), cat["kb"].astype(np.int64),
             )
-            pm.inliers = int(sum(p[6] for p in parts))
+            pm.inliers = int(sum(p["inliers"] for p in parts))
         pm.tentative, pm.gated, pm.view_pairs = counts[(a, b)]
         out.append(pm)
     return out

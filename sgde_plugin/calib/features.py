@@ -13,18 +13,26 @@ from ..errors import InputError
 
 @dataclass
 class Keypoints:
-    """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels."""
+    """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels,
+    and each keypoint's index in its image's full list (kept through `subset`)."""
 
     uv: np.ndarray
     desc: np.ndarray
     size: np.ndarray | None = None
+    index: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.size is None:
+            self.size = np.ones(self.uv.shape[0])
+        if self.index is None:
+            self.index = np.arange(self.uv.shape[0])
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
 
     def subset(self, keep: np.ndarray) -> Keypoints:
         """The keypoints selected by a boolean mask or index array."""
-        return Keypoints(self.uv[keep], self.desc[keep], None if self.size is None else self.size[keep])
+        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep])
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

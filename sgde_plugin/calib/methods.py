@@ -3,8 +3,11 @@
 * `none`: the input (data-set) extrinsics.
 * `pairwise`: each adjacent pair alone, from its same-frame correspondences only (a stereo pair):
   the essential matrix of the pooled matches gives the relative rotation and the direction of the
-  baseline, whose length is kept from the input extrinsics; a two-view adjustment (the adjustment of
-  `ba.py` restricted to the two cameras and to same-frame matches, so the ego motion adds nothing)
+  baseline, whose length is kept from the input extrinsics (when the essential matrix disagrees with
+  the input by more than 5 deg in rotation or 30 deg in baseline direction, a sign of a degenerate
+  planar or distant scene, the input pose is the start instead); a two-view adjustment (the
+  adjustment of `ba.py` restricted to the two cameras and to same-frame matches, so the ego motion
+  adds nothing and the baseline length stays at its input value through the translation prior)
   refines it.
 * `wo-glc` (the paper's "w/o GLC", two cameras only): each adjacent pair alone, with all T x T frame
   pairs and the ego-anchored adjustment of `ba.py`, so the same metric bundle adjustment as `glc`
@@ -25,14 +28,20 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from ..cameras import Camera
 from .ba import AdjustConfig, AdjustResult, Observations, robust_adjust
 from .correspondences import PairMatches
+from .lie import angle_deg
 from .outliers import rotation_to_z
 from .overlap import pixels_per_radian
 
 METHODS = ("none", "pairwise", "wo-glc", "glc")
+# the pairwise essential-matrix start is used only when it agrees this well with the input extrinsics
+MAX_INIT_ROTATION_DEG = 5.0
+MAX_INIT_DIRECTION_DEG = 30.0
 
 
 @dataclass
@@ -67,37 +76,97 @@ def spanning_tree(names: Sequence[str], pairs: Sequence[tuple[str, str]], root: 
     return edges
 
 
-def observations(matches: Sequence[PairMatches], index: dict[str, int]) -> tuple[Observations, np.ndarray]:
-    """Two observations per correspondence (one 3-D point each) and the pair index of each observation."""
-    cams, frames, pts, rays, sig, pair_of = [], [], [], [], [], []
-    n = 0
+@dataclass
+class TrackObservations:
+    """Observations of merged tracks plus, per correspondence (edge), its two observation indices and pair."""
+
+    obs: Observations
+    edge_obs: np.ndarray  # (E, 2)
+    edge_pair: np.ndarray  # (E,)
+
+
+def observations(matches: Sequence[PairMatches], index: dict[str, int]) -> TrackObservations:
+    """Observations for the adjustment, with correspondences merged into tracks.
+
+    A keypoint matched in several image pairs (e.g. camera A at frame t against camera B at frames
+    t', t'', ...) is one 3-D point seen in all those images: its depth is then fixed by the ego
+    motion as well as by the baseline. Tracks are the connected components of the match graph over
+    (frame, camera, keypoint) nodes; a component holding two different keypoints of one image is
+    inconsistent and falls back to one two-view point per correspondence. Matches without keypoint
+    ids (LoFTR) stay two-view points.
+    """
+    M = max(index.values()) + 1 if index else 1
+    keys_a, keys_b, fa, fb, ca, cb, ra, rb, sa, sb, pair = [], [], [], [], [], [], [], [], [], [], []
+    fresh = -1
     for k, pm in enumerate(matches):
-        m = len(pm)
-        ids = np.arange(n, n + m)
-        n += m
-        cams += [np.full(m, index[pm.cam_a]), np.full(m, index[pm.cam_b])]
-        frames += [pm.frame_a, pm.frame_b]
-        pts += [ids, ids]
-        rays += [pm.rays_a, pm.rays_b]
-        sig += [pm.sigma_px, pm.sigma_px]
-        pair_of += [np.full(2 * m, k)]
-    if n == 0:
+        n = len(pm)
+        if n == 0:
+            continue
+        ia, ib = index[pm.cam_a], index[pm.cam_b]
+        for keys, frame, cam, kp in ((keys_a, pm.frame_a, ia, pm.kp_a), (keys_b, pm.frame_b, ib, pm.kp_b)):
+            view = frame.astype(np.int64) * M + cam
+            key = view * (1 << 32) + kp
+            no_id = kp < 0
+            key[no_id] = fresh - np.arange(int(no_id.sum()))
+            fresh -= int(no_id.sum())
+            keys.append(key)
+        fa.append(pm.frame_a), fb.append(pm.frame_b)
+        ca.append(np.full(n, ia)), cb.append(np.full(n, ib))
+        ra.append(pm.rays_a), rb.append(pm.rays_b)
+        sa.append(pm.sigma_a), sb.append(pm.sigma_b)
+        pair.append(np.full(n, k))
+    if not pair:
         z = np.zeros(0, dtype=np.int64)
-        return Observations(z, z, z, np.zeros((0, 3)), np.zeros(0)), z
-    obs = Observations(np.concatenate(cams).astype(np.int64), np.concatenate(frames).astype(np.int64),
-                       np.concatenate(pts).astype(np.int64), np.concatenate(rays), np.concatenate(sig))
-    # observations are stored a-block then b-block per pair: the pair index repeats accordingly
-    return obs, np.concatenate(pair_of)
+        return TrackObservations(Observations(z, z, z, np.zeros((0, 3)), np.zeros(0)), np.zeros((0, 2), int), z)
+    key_a, key_b = np.concatenate(keys_a), np.concatenate(keys_b)
+    frame = np.concatenate([np.concatenate(fa), np.concatenate(fb)])
+    cam = np.concatenate([np.concatenate(ca), np.concatenate(cb)])
+    ray = np.concatenate([np.concatenate(ra), np.concatenate(rb)])
+    sig = np.concatenate([np.concatenate(sa), np.concatenate(sb)])
+    E = key_a.shape[0]
+    nodes, node_of = np.unique(np.concatenate([key_a, key_b]), return_inverse=True)
+    na, nb = node_of[:E], node_of[E:]
+    graph = coo_matrix((np.ones(E), (na, nb)), shape=(nodes.size, nodes.size))
+    _, comp = connected_components(graph, directed=False)
+    # one observation per node: the first endpoint that carries it
+    first = np.full(nodes.size, -1)
+    order = np.arange(2 * E)[::-1]
+    first[node_of[order]] = order
+    view = frame[first] * M + cam[first]
+    # a component with two nodes in the same image is inconsistent
+    nodes_per_cv = np.bincount(np.ravel_multi_index((comp, view), (comp.max() + 1, view.max() + 1)))
+    bad_comp = np.zeros(comp.max() + 1, dtype=bool)
+    bad_comp[np.unravel_index(np.flatnonzero(nodes_per_cv > 1), (comp.max() + 1, view.max() + 1))[0]] = True
+    good_edge = ~bad_comp[comp[na]]
+    # observations: good nodes (one each), then both endpoints of every edge in a bad component
+    good_nodes = np.flatnonzero(~bad_comp[comp])
+    _, point_of_comp = np.unique(comp[good_nodes], return_inverse=True)
+    n_good_points = int(point_of_comp.max()) + 1 if good_nodes.size else 0
+    bad_edges = np.flatnonzero(~good_edge)
+    src = np.concatenate([first[good_nodes], bad_edges, bad_edges + E])
+    point = np.concatenate([point_of_comp, n_good_points + np.arange(bad_edges.size),
+                            n_good_points + np.arange(bad_edges.size)]).astype(np.int64)
+    obs = Observations(cam[src].astype(np.int64), frame[src].astype(np.int64), point, ray[src], sig[src])
+    obs_of_node = np.full(nodes.size, -1)
+    obs_of_node[good_nodes] = np.arange(good_nodes.size)
+    edge_obs = np.stack([obs_of_node[na], obs_of_node[nb]], axis=1)
+    edge_obs[bad_edges, 0] = good_nodes.size + np.arange(bad_edges.size)
+    edge_obs[bad_edges, 1] = good_nodes.size + bad_edges.size + np.arange(bad_edges.size)
+    return TrackObservations(obs, edge_obs, np.concatenate(pair))
 
 
-def _pair_rms(res: AdjustResult, kept: np.ndarray, pair_of: np.ndarray, n_pairs: int) -> tuple[list, list]:
-    err2 = np.sum(res.residual_px**2, axis=1)
-    kp = pair_of[kept]
+def _pair_rms(res: AdjustResult, kept: np.ndarray, tracks: TrackObservations, n_pairs: int) -> tuple[list, list]:
+    """Per pair: RMS residual (px) over the correspondences whose two observations survived, and their count."""
+    pos = np.cumsum(kept) - 1  # index into the final residuals of each kept observation
+    e2 = np.sum(res.residual_px**2, axis=1)
+    ok = kept[tracks.edge_obs[:, 0]] & kept[tracks.edge_obs[:, 1]]
+    val = np.zeros(ok.shape[0])
+    val[ok] = 0.5 * (e2[pos[tracks.edge_obs[ok, 0]]] + e2[pos[tracks.edge_obs[ok, 1]]])
     rms, used = [], []
     for k in range(n_pairs):
-        m = kp == k
-        rms.append(float(np.sqrt(err2[m].mean())) if m.any() else float("nan"))
-        used.append(int(m.sum() // 2))
+        m = ok & (tracks.edge_pair == k)
+        rms.append(float(np.sqrt(val[m].mean())) if m.any() else float("nan"))
+        used.append(int(m.sum()))
     return rms, used
 
 
@@ -107,11 +176,11 @@ def _adjust_cameras(
 ) -> tuple[dict[str, np.ndarray], AdjustResult, list[float], list[int]]:
     names = [c.name for c in cameras]
     index = {n: i for i, n in enumerate(names)}
-    obs, pair_of = observations(matches, index)
+    tracks = observations(matches, index)
     S0 = np.stack([c.sensor_to_ego for c in cameras])
     focal = np.array([pixels_per_radian(c.intrinsics) for c in cameras])
-    res, kept = robust_adjust(S0, ego_to_world, obs, focal, index[reference], config)
-    rms, used = _pair_rms(res, kept, pair_of, len(matches))
+    res, kept = robust_adjust(S0, ego_to_world, tracks.obs, focal, index[reference], config)
+    rms, used = _pair_rms(res, kept, tracks, len(matches))
     return {n: res.sensor_to_ego[i] for i, n in enumerate(names)}, res, rms, used
 
 
@@ -198,6 +267,11 @@ def _essential_init(cp: Camera, cc: Camera, pm: PairMatches) -> np.ndarray:
     length = np.linalg.norm(rel0[:3, 3])
     if t @ rel0[:3, 3] < 0:
         t = -t
+    # A planar or distant scene makes the essential matrix degenerate; then the input pose is the better start.
+    cos_dir = float(t @ rel0[:3, 3]) / max(np.linalg.norm(t) * length, 1e-12)
+    direction_deg = np.degrees(np.arccos(min(1.0, cos_dir)))
+    if angle_deg(R @ rel0[:3, :3].T) > MAX_INIT_ROTATION_DEG or direction_deg > MAX_INIT_DIRECTION_DEG:
+        return cc.sensor_to_ego
     rel = np.eye(4)
     rel[:3, :3], rel[:3, 3] = R, t / max(np.linalg.norm(t), 1e-12) * length
     return cp.sensor_to_ego @ np.linalg.inv(rel)
