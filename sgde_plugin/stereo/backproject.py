@@ -90,22 +90,24 @@ class BackProjection:
 
 def backprojection(
     camera: Camera, rect: Camera, baseline_m: float, x_range: tuple[int, int] | None = None,
-    rays: torch.Tensor | None = None, ray_valid: torch.Tensor | None = None,
+    rays: torch.Tensor | None = None, ray_valid: torch.Tensor | None = None, possible: np.ndarray | None = None,
 ) -> BackProjection:
     """Backward map of `camera` into the rectified pinhole `rect` (same optical centre).
 
     Only pixels landing in canvas columns `x_range` = [x0, x1) are kept, and their rectified x is
     stored relative to x0 (disparity maps of the core columns). `rays`/`ray_valid` may pass the
-    camera's precomputed `ray_grid()` to share it between pairs.
+    camera's precomputed `ray_grid()` to share it between pairs. `possible` (bool, core columns)
+    marks the rectified pixels that can ever hold a disparity; pixels whose bilinear footprint
+    misses them all are left out.
     """
     x0, x1 = (0, rect.width) if x_range is None else x_range
     with torch_threads(1):
-        return _backprojection(camera, rect, baseline_m, x0, x1, rays, ray_valid)
+        return _backprojection(camera, rect, baseline_m, x0, x1, rays, ray_valid, possible)
 
 
 def _backprojection(
     camera: Camera, rect: Camera, baseline_m: float, x0: int, x1: int, rays: torch.Tensor | None,
-    ray_valid: torch.Tensor | None,
+    ray_valid: torch.Tensor | None, possible: np.ndarray | None,
 ) -> BackProjection:
     if rays is None or ray_valid is None:
         rays, ray_valid = camera.intrinsics.ray_grid()
@@ -119,6 +121,11 @@ def _backprojection(
     v = K[1, 1] * q[:, 1] / zq + K[1, 2]
     inside = front & ray_valid.reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= rect.height - 1)
     index = torch.nonzero(inside).reshape(-1)
+    if possible is not None:
+        reach = cv2.dilate(possible.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+        col = np.clip(np.rint(u[index].numpy() - x0).astype(np.intp), 0, reach.shape[1] - 1)
+        row = np.clip(np.rint(v[index].numpy()).astype(np.intp), 0, reach.shape[0] - 1)
+        index = index[torch.from_numpy(reach[row, col])]
     # point = ray * t with t * q_z = rectified z; depth = t (range) or t * r_z (pinhole z)
     k = 1.0 / zq[index]
     if not camera.intrinsics.depth_is_range:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -162,9 +163,13 @@ def _facing_half(fisheye: Camera, other: Camera) -> Camera:
 class PriorBuilder:
     """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
 
-    def __init__(self, rig: Rig, config: PriorConfig | None = None):
+    def __init__(self, rig: Rig, config: PriorConfig | None = None, threads: int | None = None):
         self.rig = rig
         self.config = config or PriorConfig()
+        # pairs processed in parallel: OpenCV's thread count by default (1 in a single-threaded worker);
+        # a learned matcher parallelises inside torch instead
+        default = cv2.getNumThreads() if self.config.matcher == "sgbm" else 1
+        self.threads = max(1, default if threads is None else int(threads))
         self.matcher: Matcher = self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
         self.plans: list[PairPlan] = []
@@ -189,19 +194,43 @@ class PriorBuilder:
             )
             if pair is None:
                 continue
-            sides = []
+            origs, pres, rects = [], [], []
             for src, rect in ((pair.left, pair.rect_left), (pair.right, pair.rect_right)):
                 orig = cam_a if src is src_a else cam_b
+                origs.append(orig)
+                pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
+                rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
+            possible = self._possible(pair, *(self._side_valid(p, r) for p, r in zip(pres, rects)))
+            sides = []
+            for orig, pre, warp, rect, can in zip(origs, pres, rects, (pair.rect_left, pair.rect_right), possible):
                 if orig.name not in rays:
                     rays[orig.name] = orig.intrinsics.ray_grid()
-                pre = None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig))
-                sides.append(_Side(
-                    camera=orig.name,
-                    pre=pre,
-                    rect=WarpMaps.between(src, rect, default_rim_px(src)),
-                    back=backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name]),
-                ))
+                back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
+                sides.append(_Side(camera=orig.name, pre=pre, rect=warp, back=back))
             self.plans.append(PairPlan(pair, sides[0], sides[1]))
+
+    @staticmethod
+    def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
+        """Canvas pixels a side's camera sees (through its virtual pinhole, if any)."""
+        valid = rect.valid.copy()
+        if pre is not None:
+            valid &= rect.warp(pre.valid.astype(np.uint8), cv2.INTER_NEAREST) > 0
+        return valid
+
+    def _possible(self, pair: RectifiedPair, valid_l: np.ndarray, valid_r: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Core pixels that can ever hold a left- / right-referenced disparity: seen (away from the
+        border) by their own camera, with a seen pixel of the other within the search range."""
+        D = pair.max_disparity
+        x0, x1 = pair.core_x
+        r = self.config.block_size // 2 + self.config.border_px
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        vl = cv2.erode(valid_l.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        vr = cv2.erode(valid_r.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        row = np.ones((1, D), np.uint8)
+        # any right pixel in [x - D + 1, x] / any left pixel in [x, x + D - 1]
+        right_reach = cv2.dilate(vr, row, anchor=(D - 1, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        left_reach = cv2.dilate(vl, row, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
     def _prepare(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Check sizes and convert to the matching colour space (grey unless `color`)."""
@@ -267,40 +296,55 @@ class PriorBuilder:
             remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
+    def _pair_values(
+        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
+    ) -> tuple[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], dict[str, float]]:
+        """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        left = plan.left.warp(grey[plan.left.camera])
+        right = plan.right.warp(grey[plan.right.camera])
+        valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
+        valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
+        t_warp = time.perf_counter() - t0
+        disp_l, conf_l, disp_r, conf_r, t_match = self.match_pair(plan, left, right, valid_l, valid_r)
+        t0 = time.perf_counter()
+        values = [
+            (side.camera, *side.back.values(disp, conf, cfg.min_depth, cfg.max_depth))
+            for side, disp, conf in ((plan.left, disp_l, conf_l), (plan.right, disp_r, conf_r))
+        ]
+        return values, {"warp": t_warp, "match": t_match, "backproject": time.perf_counter() - t0}
+
     def build(
         self, images: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray] | None = None
     ) -> dict[str, PriorMap]:
-        """Priors of all cameras for one frame; `masks` (True = use) default to the rig's static masks."""
+        """Priors of all cameras for one frame; `masks` (True = use) default to the rig's static masks.
+
+        Pairs run in `self.threads` threads (OpenCV and NumPy release the GIL); the fusion into each
+        camera's map then happens in pair order, so the result does not depend on the thread count.
+        """
         t_start = time.perf_counter()
-        cfg = self.config
         masks = dict(self._static_masks) if masks is None else dict(masks)
         grey = self._prepare(images)
-        out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
-        t_match = t_warp = t_back = 0.0
-        for plan in self.plans:
-            t0 = time.perf_counter()
-            left = plan.left.warp(grey[plan.left.camera])
-            right = plan.right.warp(grey[plan.right.camera])
-            valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
-            valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
-            t_warp += time.perf_counter() - t0
-            disp_l, conf_l, disp_r, conf_r, tm = self.match_pair(plan, left, right, valid_l, valid_r)
-            t_match += tm
-            t0 = time.perf_counter()
-            for side, disp, conf in ((plan.left, disp_l, conf_l), (plan.right, disp_r, conf_r)):
-                prior = out[side.camera]
-                fuse_into(prior.depth, prior.confidence, *side.back.values(disp, conf, cfg.min_depth, cfg.max_depth))
-            t_back += time.perf_counter() - t0
+        if self.threads > 1 and len(self.plans) > 1:
+            with ThreadPoolExecutor(self.threads) as pool:
+                results = list(pool.map(lambda p: self._pair_values(p, grey, masks), self.plans))
+        else:
+            results = [self._pair_values(p, grey, masks) for p in self.plans]
         t0 = time.perf_counter()
+        out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
+        for values, _ in results:
+            for camera, index, z, c in values:
+                fuse_into(out[camera].depth, out[camera].confidence, index, z, c)
         for name, prior in out.items():
             mask = masks.get(name)
             if mask is not None:
                 prior.depth[~mask] = 0
                 prior.confidence[~mask] = 0
-        t_back += time.perf_counter() - t0
-        self.last_timings = {
-            "warp": t_warp, "match": t_match, "backproject": t_back, "total": time.perf_counter() - t_start,
-        }
+        timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
+        timings["fuse"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+        self.last_timings = timings
         return out
 
 
