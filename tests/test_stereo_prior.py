@@ -163,3 +163,14 @@ def test_left_right_check():
     assert np.allclose(out, [[0, 0, 1, 1, math.exp(-0.5)]])
     back = lr_check(disp_r, conf_r, disp_l, conf_l, +1, 1.0)
     assert np.allclose(back, [[1, 1, 0, 0, 0]])
+
+
+def test_result_does_not_depend_on_the_thread_count():
+    rig, images, _ = fisheye_scene()
+    rig = Rig(rig.cameras, (("F", "R"), ("R", "F")), ())  # two plans to run side by side (and fuse)
+    one = PriorBuilder(rig, PriorConfig(), threads=1).build(images)
+    two = PriorBuilder(rig, PriorConfig(), threads=2).build(images)
+    assert one["F"].depth.any()
+    for name in one:
+        assert np.array_equal(one[name].depth, two[name].depth)
+        assert np.array_equal(one[name].confidence, two[name].confidence)
