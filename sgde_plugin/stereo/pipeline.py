@@ -126,6 +126,7 @@ class _Side:
     camera: str  # original camera name
     pre: WarpMaps | None  # original fisheye -> virtual pinhole (fisheye="virtual" only)
     rect: WarpMaps  # (virtual or original) source -> rectified canvas
+    valid: np.ndarray  # bool canvas: pixels the camera sees (through its virtual pinhole, if any)
     back: BackProjection  # original camera -> rectified canvas (backward map)
 
     def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
@@ -135,13 +136,10 @@ class _Side:
         return self.rect.warp(image, interpolation)
 
     def canvas_valid(self, mask: np.ndarray | None) -> np.ndarray:
-        """Bool canvas mask: the source sees the pixel (and the ego mask allows it)."""
-        valid = self.rect.valid.copy()
-        if self.pre is not None:
-            valid &= self.rect.warp(self.pre.valid.astype(np.uint8), cv2.INTER_NEAREST) > 0
-        if mask is not None:
-            valid &= self.warp(mask.astype(np.uint8), cv2.INTER_NEAREST) > 0
-        return valid
+        """Bool canvas mask: the camera sees the pixel and the ego mask (if any) allows it."""
+        if mask is None:
+            return self.valid
+        return self.valid & (self.warp(mask.astype(np.uint8), cv2.INTER_NEAREST) > 0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -200,13 +198,16 @@ class PriorBuilder:
                 origs.append(orig)
                 pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
                 rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
-            possible = self._possible(pair, *(self._side_valid(p, r) for p, r in zip(pres, rects)))
+            valid = [self._side_valid(p, r) for p, r in zip(pres, rects)]
+            possible = self._possible(pair, *valid)
             sides = []
-            for orig, pre, warp, rect, can in zip(origs, pres, rects, (pair.rect_left, pair.rect_right), possible):
+            for orig, pre, warp, seen, rect, can in zip(
+                origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible
+            ):
                 if orig.name not in rays:
                     rays[orig.name] = orig.intrinsics.ray_grid()
                 back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
-                sides.append(_Side(camera=orig.name, pre=pre, rect=warp, back=back))
+                sides.append(_Side(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back))
             self.plans.append(PairPlan(pair, sides[0], sides[1]))
 
     @staticmethod
