@@ -14,6 +14,10 @@ class InputError(Exception):
         self.problem = problem
         super().__init__(self.line())
 
+    def __reduce__(self):
+        # picklable across worker processes (the default would call __init__ with one argument)
+        return (type(self), (self.file, self.key, self.problem))
+
     def line(self) -> str:
         """The single line shown to the user."""
         parts = [p for p in (self.file, self.key) if p]

@@ -142,7 +142,7 @@ def expected_rig(root: Path, truth: dict, scene: str) -> Rig:
         frames.append(Frame(sample, front["timestamp"],
                             make_transform(quaternion_to_rotation(ego["rotation"]), ego["translation"]),
                             {ch: root / rows[per[ch]]["filename"] for ch in RING}))
-    return Rig(tuple(cams), ring_pairs(RING), tuple(frames), RING, root)
+    return Rig(tuple(cams), ring_pairs(RING), tuple(frames), RING, root, extra={"scene": scene})
 
 
 @pytest.fixture(scope="module")

@@ -231,7 +231,7 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
             world_from_cam = _pose(raw_pose, scene_path, f"data[key={key}].datum.image.pose", zero_is_identity=True)
             ego_to_world = world_from_cam @ ego_from_ref
         frames.append(Frame(f"{n:06d}", ts, ego_to_world, images))
-    return Rig(tuple(cameras), ring_pairs(RING), tuple(frames), RING, folder)
+    return Rig(tuple(cameras), ring_pairs(RING), tuple(frames), RING, folder, extra={"scene": folder.name})
 
 
 def _image(d: dict, file: Path, key: str) -> dict:

@@ -280,7 +280,7 @@ class NuScenesTables:
                     frames.append((r[_TOKEN], {c: _nearest(by_channel[c], times[c], r[_TIME]) for c in RING}))
         return Rig(
             tuple(cameras), ring_pairs(RING), tuple(self._frame(fid, ch, check_images, cameras) for fid, ch in frames),
-            RING, self.root,
+            RING, self.root, extra={"scene": sc.name},
         )
 
     def _camera(self, sc: _Scene, channel: str, rows: list[tuple]) -> Camera:
