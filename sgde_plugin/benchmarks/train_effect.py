@@ -10,8 +10,9 @@ cameras), evaluated on held-out frames further down the street:
 Data enter through one function, `load_sequence`, returning a `RigSequence` (images, ground
 truth, LiDAR-like training depth, prior and its validity, per camera per frame, plus the cameras
 for Dep Con). Scenes come from `sgde_plugin.synth` when its renderer imports, else from a small
-box-and-plane street written here (labelled in the output). Priors come from the ground truth
-restricted to the true overlap of adjacent cameras with stereo-like noise (labelled too).
+box-and-plane street written here; priors come from the project's prior pipeline
+(`sgde_plugin.stereo`) when it imports, else from the ground truth restricted to the true overlap of
+adjacent cameras with stereo-like noise. The output says which was used.
 """
 
 from __future__ import annotations
@@ -253,24 +254,14 @@ def lidar_pattern(depth: np.ndarray, camera: Camera) -> np.ndarray:
 
 # --- the data entry point -----------------------------------------------------------------------
 
-def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, frame_step_s: float = 0.5) -> RigSequence:
-    """Render frames `frame_ids` (time = id * frame_step_s) of a six-camera street sequence at
-    `size` = (H, W), with LiDAR-like supervision and overlap priors."""
-    h, w = size
-    cameras, rig_note = rig_cameras(w, h)
-    rng = np.random.default_rng(seed)
-    notes = [rig_note]
+Shot = Callable[[Camera, int], tuple[np.ndarray, np.ndarray]]
+
+
+def _renderer(seed: int, frame_step_s: float) -> tuple[Shot, str, str]:
+    """(camera, frame id) -> (RGB, depth): the project's renderer when it imports, else the box street."""
     try:
         from ..synth.render import render
         from ..synth.world import build_world
-
-        world = build_world(seed)
-
-        def shot(cam: Camera, k: int) -> tuple[np.ndarray, np.ndarray]:
-            t = k * frame_step_s
-            return render(world, cam, world.ego_pose(t), t)
-
-        scene = "sgde_plugin.synth procedural street (renderer of the project)"
     except ImportError as exc:
         street = build_box_street(seed)
 
@@ -280,24 +271,96 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
             pose[1, 3] = -1.75
             return render_box_street(street, cam, pose)
 
-        scene = "fallback box-and-plane street rendered inside this benchmark"
-        notes.append(f"sgde_plugin.synth renderer unavailable ({exc})")
+        return shot, "fallback box-and-plane street rendered inside this benchmark", f"no renderer ({exc})"
+    world = build_world(seed)
+
+    def shot(cam: Camera, k: int) -> tuple[np.ndarray, np.ndarray]:
+        t = k * frame_step_s
+        return render(world, cam, world.ego_pose(t), t)
+
+    return shot, "sgde_plugin.synth procedural street (the project's renderer)", ""
+
+
+def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray | None:
+    """Priors [F,N,H,W] from the project's prior pipeline (SGBM on rectified adjacent pairs), or None."""
+    try:
+        from ..rig import Frame, Rig
+        from ..rig import ring_pairs as rig_ring_pairs
+        from ..stereo.pipeline import PriorBuilder, PriorConfig
+    except ImportError:
+        return None
+    names = tuple(c.name for c in cameras)
+    rig = Rig(tuple(cameras), rig_ring_pairs(names), (Frame("0", 0),), names)
+    builder = PriorBuilder(rig, PriorConfig(scale=1.0))
+    out = np.zeros(images.shape[:-1], np.float32)
+    for k in range(images.shape[0]):
+        maps = builder.build({c.name: images[k, i] for i, c in enumerate(cameras)})
+        for i, c in enumerate(cameras):
+            out[k, i] = maps[c.name].depth
+    return out
+
+
+def _overlap(depth: np.ndarray, cameras: list[Camera]) -> np.ndarray:
+    """True overlap per camera [N,H,W]: the prior evaluation's definition when available."""
+    try:
+        from ..stereo.evaluate import true_overlap as pair_overlap
+    except ImportError:
+        return true_overlap(depth, cameras)
+    n = len(cameras)
+    out = np.zeros(depth.shape, bool)
+    for i in range(n):
+        for j in ((i - 1) % n, (i + 1) % n):
+            out[i] |= pair_overlap(cameras[i], depth[i], cameras[j], depth[j])
+    return out
+
+
+def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, frame_step_s: float = 0.5,
+                  prior: str = "auto") -> RigSequence:
+    """Frames `frame_ids` (time = id * frame_step_s) of a six-camera street at network size (H, W).
+
+    Frames are rendered at twice the network size; priors come from the project's prior pipeline
+    run on those renders (``prior="auto"`` when it imports, or ``"pipeline"``), else (or with
+    ``prior="overlap-noise"``) from the ground truth restricted to the true overlap with stereo-like
+    noise. Images are area-downsampled, depths (truth, prior) min-pooled, to the network size.
+    """
+    from ..cache.resample import resize_depth, resize_matrix, warp_image
+
+    h, w = size
+    render_cams, rig_note = rig_cameras(2 * w, 2 * h)
+    cameras = [c.resized(w, h) for c in render_cams]
+    shot, scene, scene_note = _renderer(seed, frame_step_s)
+    notes = [rig_note] + ([scene_note] if scene_note else [])
     n, frames = len(cameras), len(frame_ids)
+    big_images = np.zeros((frames, n, 2 * h, 2 * w, 3), np.uint8)
     images = np.zeros((frames, n, h, w, 3), np.uint8)
     depth = np.zeros((frames, n, h, w), np.float32)
+    shrink = resize_matrix((2 * h, 2 * w), (h, w))
     for k, fid in enumerate(frame_ids):
-        for i, cam in enumerate(cameras):
-            images[k, i], depth[k, i] = shot(cam, fid)
-    overlap = np.stack([true_overlap(depth[k], cameras) for k in range(frames)])
-    prior, valid = noisy_overlap_prior(depth, overlap, rng)
+        for i, cam in enumerate(render_cams):
+            big_images[k, i], big_depth = shot(cam, fid)
+            images[k, i] = warp_image(big_images[k, i], shrink, (h, w))
+            depth[k, i] = resize_depth(big_depth, (h, w))[0]
+    overlap = np.stack([_overlap(depth[k], cameras) for k in range(frames)])
+    big_prior = _pipeline_priors(render_cams, big_images) if prior in ("auto", "pipeline") else None
+    if big_prior is None and prior == "pipeline":
+        raise RuntimeError("the prior pipeline (sgde_plugin.stereo) is not available")
+    if big_prior is not None:
+        prior_map = np.stack([np.stack([resize_depth(big_prior[k, i], (h, w))[0] for i in range(n)])
+                              for k in range(frames)])
+        prior_map[prior_map > MAX_DEPTH_EVAL] = 0
+        valid = prior_map > 0
+        prior_source = (f"prior pipeline: sgde_plugin.stereo PriorBuilder (SGBM, true extrinsics) on "
+                        f"{2 * w}x{2 * h} renders, min-pooled to {w}x{h}")
+    else:
+        prior_map, valid = noisy_overlap_prior(depth, overlap, np.random.default_rng(seed))
+        prior_source = ("fallback: ground truth restricted to the true overlap of adjacent cameras, with "
+                        "stereo-like noise (sigma_z = z^2 * 0.5 px / (633 px * 0.6 m), 3% outliers, 15% holes)")
     supervision = np.stack([np.stack([np.where(lidar_pattern(depth[k, i], cameras[i]), depth[k, i], 0.0)
                                       for i in range(n)]) for k in range(frames)]).astype(np.float32)
     return RigSequence(
         cameras=cameras, pairs=ring_pairs(cameras), images=images, depth=depth, supervision=supervision,
-        prior=prior, valid=valid, overlap=overlap, scene_source=scene,
-        prior_source="fallback: ground truth restricted to the true overlap of adjacent cameras, with "
-                     "stereo-like noise (sigma_z = z^2 * 0.5 px / (633 px * 0.6 m), 3% outliers, 15% holes)",
-        notes=notes,
+        prior=prior_map.astype(np.float32), valid=valid, overlap=overlap, scene_source=scene,
+        prior_source=prior_source, notes=notes,
     )
 
 
@@ -387,7 +450,7 @@ def _pooled_abs_rel(rows: list[dict]) -> float:
 
 def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | None = None,
         train_frames: int | None = None, test_frames: int | None = None, seed: int = 0,
-        log: Callable[[str], None] | None = None) -> dict:
+        validity: bool = False, lr: float = 2e-4, log: Callable[[str], None] | None = None) -> dict:
     """Run the three arms and return the figures (see module docstring); ``log`` gets progress lines."""
     log = log or (lambda _msg: None)
     size = size or ((64, 112) if fast else (96, 176))
@@ -395,7 +458,7 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
     n_train = train_frames or (8 if fast else 40)
     n_test = test_frames or (2 if fast else 8)
     torch.manual_seed(seed)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     # held-out frames come after a gap further down the street (not rendered)
     gap = 6
     seq = load_sequence(list(range(n_train)) + list(range(n_train + gap, n_train + gap + n_test)), size, seed=seed)
@@ -408,14 +471,14 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0, scales=(0, 1, 2, 3))
     nets = {
         "baseline": copy.deepcopy(init),
-        "+ input": DepthNet.with_prior_from(init),
-        "+ input & L1": DepthNet.with_prior_from(init),
+        "+ input": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL),
+        "+ input & L1": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL),
     }
     weights = {"baseline": None, "+ input": None, "+ input & L1": 0.005}
     results: dict[str, dict] = {}
     for name, net in nets.items():
         torch.manual_seed(seed)
-        train_s = train_arm(net, seq, train_idx, steps, seed, weights[name])
+        train_s = train_arm(net, seq, train_idx, steps, seed, weights[name], lr=lr)
         res = evaluate(net, seq, test_idx)
         res["train_s"] = round(train_s, 1)
         results[name] = res
@@ -434,6 +497,8 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
         "train_frames": n_train,
         "test_frames": n_test,
         "steps_per_arm": steps,
+        "lr": lr,
+        "validity_channel": validity,
         "batch": len(seq.cameras),
         "supervision": "LiDAR-like (32 beams from the roof, <= 70 m), evaluation on dense ground truth <= 80 m",
         "init": "random (no pretrained weights available offline); identical initial weights and data order",
@@ -447,6 +512,8 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
         "target_dep_con_lower": bool(dep_con_change < 0.0),
         "data_s": round(data_s, 1),
         "total_s": round(time.perf_counter() - t0, 1),
+        "total_cpu_s": round(time.process_time() - cpu0, 1),
+        "torch_threads": torch.get_num_threads(),
     }
 
 
