@@ -84,7 +84,7 @@ def test_masks_and_depth_range_are_respected():
     rig, images, depths = pinhole_scene()
     mask = np.ones(depths["FRONT"].shape, bool)
     mask[135:] = False
-    out = PriorBuilder(rig, PriorConfig()).build(images, {"FRONT": mask})
+    out = PriorBuilder(rig, PriorConfig()).build(images, {"FRONT": mask.astype(np.uint8) * 255})  # 0 = ignore
     assert not out["FRONT"].depth[135:].any() and not out["FRONT"].confidence[135:].any()
     assert out["FRONT"].depth[:135].any()
     # the masked pixels cannot be matched from the other side either: FRONT_RIGHT loses their twins
@@ -123,6 +123,8 @@ def test_camera_without_overlap_gets_an_empty_map_and_bad_input_is_refused():
         builder.build({"FRONT": images["FRONT"], "FRONT_RIGHT": images["FRONT_RIGHT"][:100]})
     with pytest.raises(InputError, match="missing"):
         builder.build({"FRONT": images["FRONT"]})
+    with pytest.raises(InputError, match="masks"):
+        builder.build({**images, "BACK": images["FRONT"]}, {"FRONT": np.ones((10, 10), bool)})
 
 
 def test_config_dict_tracks_everything_that_changes_the_output(tmp_path):

@@ -326,6 +326,13 @@ class PriorBuilder:
         """
         t_start = time.perf_counter()
         masks = dict(self._static_masks) if masks is None else dict(masks)
+        masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
+        for name, m in masks.items():
+            if m is not None and name in self.rig.camera_names:
+                cam = self.rig.camera(name)
+                if m.shape != (cam.height, cam.width):
+                    raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
+                                     f"{cam.width}x{cam.height}")
         grey = self._prepare(images)
         if self.threads > 1 and len(self.plans) > 1:
             with ThreadPoolExecutor(self.threads) as pool:
