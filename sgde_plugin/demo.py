@@ -31,8 +31,8 @@ class DemoSettings:
     frames: int = 7
     scale: float = 0.5
     seed: int = 0
-    net_size: tuple[int, int] = (128, 224)
-    train_steps: int = 120
+    net_size: tuple[int, int] = (96, 160)
+    train_steps: int = 80
     methods: tuple[str, ...] = ("none", "glc")
 
 

@@ -12,7 +12,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     parser.add_argument("--frames", type=int, default=7, help="frames of the synthetic sequence (default 7)")
     parser.add_argument("--scale", type=float, default=0.5, help="image scale of the 1600x900 rig (default 0.5)")
-    parser.add_argument("--steps", type=int, default=120, help="training steps per network arm (default 120)")
+    parser.add_argument("--steps", type=int, default=80, help="training steps per network arm (default 80)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
 
 
