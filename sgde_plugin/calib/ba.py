@@ -4,9 +4,10 @@ Unknowns (the paper's parametrisation): the pose of the reference camera in ever
 X^1_t, one relative pose per other camera, X^m_rel, fixed over the window, so the pose of camera m in
 frame t is X^m_t = X^m_rel X^1_t; and one 3-D point per correspondence. Every adjacent pair of the ring
 (last-to-first included) observes the same unknowns, so the ring of relative poses closes by
-construction. Residuals are angular errors of the observed unit rays (sine of the angle along two
-tangent directions) times the camera's pixels per radian, divided by each observation's sigma, so
-pinholes and fisheyes share one model.
+construction. Residuals are angular errors of the observed unit rays (the stereographic projection
+of the predicted direction onto the ray's tangent plane, 2 tan(angle / 2), which grows without bound
+towards the antipode, so no point can settle behind its camera) times the camera's pixels per
+radian, divided by each observation's sigma, so pinholes and fisheyes share one model.
 
 Solver: Levenberg-Marquardt on the normal equations with the points eliminated per point (Schur
 complement, the standard bundle-adjustment reduction), analytic Jacobians, the soft-L1 loss by
@@ -26,7 +27,7 @@ Gauge and metric scale (the choice made here):
   frame t' span the ego motion, whose length is known in metres: the relative translations come out
   metric (tests prove it). G has a weak prior (5 deg) towards identity: on a straight drive its roll
   about the direction of travel is not observable, and through G it moves no point and no camera.
-* Relative translations have a weak prior towards their initial values (sigma 0.25 m) and relative
+* Relative translations have a weak prior towards their initial values (sigma 0.5 m) and relative
   rotations a very weak one (10 deg); they matter only when the images say little (a static car).
 * The reference camera keeps its initial sensor_to_ego; the other cameras' sensor_to_ego are
   S_m = S_1 (X^m_rel)^-1. Calibration refines the relative geometry, which is what stereo needs.
@@ -53,7 +54,7 @@ class AdjustConfig:
     sigma_centre_m: float = 0.02
     sigma_ego_rot_deg: float = 0.05
     sigma_gauge_rot_deg: float = 5.0
-    sigma_rel_t_m: float = 0.25
+    sigma_rel_t_m: float = 0.5
     sigma_rel_rot_deg: float = 10.0
     ftol: float = 1e-7
     pose_tol: float = 1e-5
@@ -205,7 +206,13 @@ def cauchy(sq: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
     return c * c * np.log(z), 1.0 / z
 
 
-LOSSES = {"soft_l1": soft_l1, "cauchy": cauchy}
+def geman_mcclure(sq: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
+    """Geman-McClure cost c^2 s / (c^2 + s) (bounded: far outliers have no pull), and its IRLS weight."""
+    c2 = c * c
+    return c2 * sq / (c2 + sq), (c2 / (c2 + sq)) ** 2
+
+
+LOSSES = {"soft_l1": soft_l1, "cauchy": cauchy, "geman_mcclure": geman_mcclure}
 
 
 def _pair_indices(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -259,7 +266,8 @@ class _Problem:
         ci = np.where(slot[obs.camera] < n_o, 6 * self.T + 6 * slot[obs.camera], self.g_idx + 3)
         self.pose_idx = np.concatenate([fi, ci[:, None] + np.arange(6)[None, :]], axis=1)  # (N, 12)
         self.is_ref = obs.camera == reference
-        self.E = np.stack(tangent_basis(obs.ray), axis=1)  # (N, 2, 3)
+        self.ray = np.asarray(obs.ray, dtype=np.float64)
+        self.E = np.stack(tangent_basis(self.ray), axis=1)  # (N, 2, 3)
         self.pair_i, self.pair_j = _pair_indices(obs.point) if len(obs) else (np.zeros(0, int), np.zeros(0, int))
         n = self.n_full
         self.flat_pp = (self.pose_idx[:, :, None] * n + self.pose_idx[:, None, :]).ravel()
@@ -292,11 +300,15 @@ class _Problem:
         q = (RmT @ v[:, :, None])[:, :, 0]
         nq = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
         u = q / nq[:, None]
-        r = self.focal[:, None] * (self.E @ u[:, :, None])[:, :, 0]
+        # stereographic residual 2 f E u / (1 + ray . u): f * angle near the ray, no minimum at the antipode
+        Eu = (self.E @ u[:, :, None])[:, :, 0]
+        s = np.maximum(1.0 + np.sum(self.ray * u, axis=1), 1e-9)
+        r = (2.0 * self.focal / s)[:, None] * Eu
         if not jacobians:
             return r
-        # dr/dq = f E (I - u u^T) / |q|
-        A = (self.E - (self.E @ u[:, :, None]) * u[:, None, :]) * (self.focal / nq)[:, None, None]
+        # dr/du = (2 f / s) (E - E u ray^T / s); du/dq = (I - u u^T) / |q|
+        dr_du = (2.0 * self.focal / s)[:, None, None] * (self.E - Eu[:, :, None] * (self.ray / s[:, None])[:, None, :])
+        A = (dr_du - (dr_du @ u[:, :, None]) * u[:, None, :]) / nq[:, None, None]
         A_RmT = A @ RmT
         A_RmT_RtT = A_RmT @ RtT
         J_pose = np.concatenate(
@@ -349,8 +361,8 @@ class _Problem:
         np.add.at(Hll, o.point, Jl_wT @ Jl)
         gl = np.zeros((K, 3))
         np.add.at(gl, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
-        Hpp = np.bincount(self.flat_pp, weights=(Jp_wT @ Jp).ravel(), minlength=n * n).reshape(n, n)
-        gp = np.bincount(self.pose_idx.ravel(), weights=(Jp_wT @ r[:, :, None]).ravel(), minlength=n)
+        Hpp = np.bincount(self.flat_pp, weights=(Jp_wT @ Jp).ravel(), minlength=n * n).reshape(n, n).astype(float)
+        gp = np.bincount(self.pose_idx.ravel(), weights=(Jp_wT @ r[:, :, None]).ravel(), minlength=n).astype(float)
         for x, blocks in self.prior_terms(st):
             for ia, Ja in blocks:
                 gp[ia : ia + 3] += Ja.T @ x
@@ -512,15 +524,15 @@ def select_observations(obs: Observations, keep_obs: np.ndarray) -> tuple[Observ
 
 @dataclass(frozen=True)
 class RobustSchedule:
-    """Passes of `robust_adjust`: coarse (1 px for every observation), reject, weighted, reject, final."""
+    """Passes of `robust_adjust`: graduated coarse fit, reject, weighted fit, reject, final fit."""
 
+    coarse_scales_px: tuple[float, ...] = (1.0,)
+    coarse_loss: str = "cauchy"
+    coarse_iterations_per_scale: int = 40
+    coarse_ftol: float = 1e-4
+    coarse_pose_tol: float = 1e-4
     coarse_reject_px: float = 3.0
     fine_reject_sigma: float = 5.0
-    coarse_pose_tol: float = 1e-4
-    coarse_ftol: float = 1e-4
-    coarse_max_iterations: int = 40
-    coarse_loss: str = "cauchy"
-    coarse_f_scale: float = 1.0
 
 
 def robust_adjust(
@@ -534,9 +546,11 @@ def robust_adjust(
 ) -> tuple[AdjustResult, np.ndarray]:
     """Adjustment in passes with outlier rejection between them; returns the result and the kept observations.
 
-    Pass 1 weighs every observation as 1 px under a Cauchy loss, which ignores far outliers (those RANSAC
-    leaves, e.g. on cars that move with the ego, would bend a soft-L1 fit); observations with a residual
-    above `coarse_reject_px` are dropped (and points left with one observation). Pass 2 weighs each
+    Pass 1 weighs every observation as 1 px under a Cauchy loss (scale 1 px), whose pull fades for far
+    outliers that RANSAC leaves (e.g. tracks on moving cars), where they would bend a soft-L1 fit; a
+    schedule of shrinking scales (graduated non-convexity) or the bounded Geman-McClure loss can be
+    chosen instead, but measured worse on the synthetic sequences. Observations with a residual above
+    `coarse_reject_px` are then dropped (and points left with one observation). Pass 2 weighs each
     observation by its own sigma (SIFT keypoints are less precise at coarse scales) under the configured
     loss (soft-L1 by default); observations above `fine_reject_sigma` sigmas are dropped and pass 3
     polishes. Passes warm-start from the previous one and share one iteration budget.
@@ -544,12 +558,16 @@ def robust_adjust(
     cfg = config or AdjustConfig()
     sch = schedule or RobustSchedule()
     budget = cfg.max_iterations
-    coarse_cfg = replace(cfg, pose_tol=max(cfg.pose_tol, sch.coarse_pose_tol), loss=sch.coarse_loss,
-                         f_scale=sch.coarse_f_scale, ftol=max(cfg.ftol, sch.coarse_ftol),
-                         max_iterations=min(cfg.max_iterations, sch.coarse_max_iterations))
-    res = adjust(sensor_to_ego, ego_to_world, Observations(obs.camera, obs.frame, obs.point, obs.ray),
-                 focal, reference, config=coarse_cfg)
-    used = res.iterations
+    plain = Observations(obs.camera, obs.frame, obs.point, obs.ray)
+    res, used = None, 0
+    for scale in sch.coarse_scales_px:  # graduated non-convexity: a wide basin first, then sharper
+        stage = replace(cfg, loss=sch.coarse_loss, f_scale=scale, pose_tol=max(cfg.pose_tol, sch.coarse_pose_tol),
+                        ftol=max(cfg.ftol, sch.coarse_ftol),
+                        max_iterations=max(1, min(sch.coarse_iterations_per_scale, budget - used)))
+        res = adjust(sensor_to_ego, ego_to_world, plain, focal, reference, config=stage, start=res)
+        used += res.iterations
+        if os.environ.get("SGDE_BA_DEBUG"):
+            print("coarse", scale, res.iterations, res.message, file=sys.stderr)
     kept_idx = np.arange(len(obs))
     cur_obs = obs
     for limit, in_sigmas in ((sch.coarse_reject_px, False), (sch.fine_reject_sigma, True)):

@@ -42,6 +42,8 @@ METHODS = ("none", "pairwise", "wo-glc", "glc")
 # the pairwise essential-matrix start is used only when it agrees this well with the input extrinsics
 MAX_INIT_ROTATION_DEG = 5.0
 MAX_INIT_DIRECTION_DEG = 30.0
+# a per-pair method keeps the input relative pose of a pair with fewer usable correspondences
+MIN_PAIR_MATCHES = 8
 
 
 @dataclass
@@ -232,12 +234,16 @@ def _chain(
         if same_time:
             pm = pm.same_time()
         cp, cc = cams[p], cams[c]
+        key = (pm.cam_a, pm.cam_b)
+        if len(pm) < MIN_PAIR_MATCHES:
+            out[c] = out[p] @ np.linalg.inv(cp.sensor_to_ego) @ cc.sensor_to_ego
+            msgs.append(f"{p}-{c}: {len(pm)} usable correspondences, input relative pose kept")
+            continue
         if same_time:
-            cc = cc.with_pose(_essential_init(cp, cc, pm) if len(pm) else cc.sensor_to_ego)
+            cc = cc.with_pose(_essential_init(cp, cc, pm))
         ext, res, rms, used = _adjust_cameras([cp, cc], [pm], ego_to_world, p, config)
         Q = np.linalg.inv(cp.sensor_to_ego) @ ext[c]  # child in the parent's frame
         out[c] = out[p] @ Q
-        key = (pm.cam_a, pm.cam_b)
         result.used_pairs.append(key)
         result.pair_rms_px[key] = rms[0]
         result.pair_used_matches[key] = used[0]

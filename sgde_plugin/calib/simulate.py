@@ -48,46 +48,61 @@ def simulate_observations(
     noise_px: float = 0.5,
     depth_range_m: tuple[float, float] = (4.0, 40.0),
     rng: np.random.Generator | None = None,
-    cross_time: bool = True,
+    two_view: bool = False,
 ) -> tuple[Observations, np.ndarray, np.ndarray]:
-    """Observations of random points by every adjacent pair over all (t, t') frame pairs.
+    """Observations of random points in the overlaps of adjacent pairs, like merged match tracks.
 
-    Returns the observations, the true world points and the pair index (into `pairs`) of each point.
+    For every pair (a, b) and frame t, `per_view_pair * T` points are sampled in camera a's image at
+    frame t (random depth) and kept when camera b sees them in some frame; each point is observed by
+    cameras a and b in every frame that sees it (a track), or, with `two_view`, only by a at t and b
+    at one frame. Pixels get Gaussian noise. Returns the observations, the true world points and the
+    pair index of each point.
     """
     rng = rng or np.random.default_rng(0)
     T = ego_to_world.shape[0]
     cams, frames, points, rays, world_pts, pair_of = [], [], [], [], [], []
     n_pts = 0
     for p, (a, b) in enumerate(pairs):
-        ca, cb = cameras[a], cameras[b]
+        ca = cameras[a]
         for t in range(T):
-            for t2 in range(T):
-                if not cross_time and t != t2:
-                    continue
-                n_try = per_view_pair * 40
-                uv = rng.uniform([0, 0], [ca.width - 1, ca.height - 1], size=(n_try, 2))
-                depth = rng.uniform(*depth_range_m, size=n_try)
-                pa, ok = ca.intrinsics.points_from_depth(uv, depth)
-                A = ego_to_world[t] @ ca.sensor_to_ego
-                B = ego_to_world[t2] @ cb.sensor_to_ego
-                world = pa @ A[:3, :3].T + A[:3, 3]
-                uvb, okb = cb.intrinsics.project((world - B[:3, 3]) @ B[:3, :3])
-                keep = np.flatnonzero(ok & okb)[:per_view_pair]
-                if keep.size == 0:
-                    continue
-                ra, va = ca.intrinsics.unproject(uv[keep] + rng.normal(scale=noise_px, size=(keep.size, 2)))
-                rb, vb = cb.intrinsics.unproject(uvb[keep] + rng.normal(scale=noise_px, size=(keep.size, 2)))
-                good = va & vb
-                keep, ra, rb = keep[good], ra[good], rb[good]
-                n = keep.size
-                ids = np.arange(n_pts, n_pts + n)
-                n_pts += n
-                cams += [np.full(n, a), np.full(n, b)]
-                frames += [np.full(n, t), np.full(n, t2)]
-                points += [ids, ids]
-                rays += [ra, rb]
-                world_pts.append(world[keep])
-                pair_of.append(np.full(n, p))
+            n_try = per_view_pair * T * 20
+            uv = rng.uniform([0, 0], [ca.width - 1, ca.height - 1], size=(n_try, 2))
+            depth = rng.uniform(*depth_range_m, size=n_try)
+            pa, ok = ca.intrinsics.points_from_depth(uv, depth)
+            A = ego_to_world[t] @ ca.sensor_to_ego
+            world = pa @ A[:3, :3].T + A[:3, 3]
+            seen = {}
+            for m in (a, b):
+                cm = cameras[m]
+                for t2 in range(T):
+                    V = ego_to_world[t2] @ cm.sensor_to_ego
+                    uvv, okv = cm.intrinsics.project((world - V[:3, 3]) @ V[:3, :3])
+                    seen[(m, t2)] = (uvv, okv & ok)
+            in_b = np.any([seen[(b, t2)][1] for t2 in range(T)], axis=0)
+            keep = np.flatnonzero(in_b & ok)[: per_view_pair * T]
+            if keep.size == 0:
+                continue
+            ids = np.arange(n_pts, n_pts + keep.size)
+            n_pts += keep.size
+            world_pts.append(world[keep])
+            pair_of.append(np.full(keep.size, p))
+            if two_view:
+                first_b = np.argmax(np.stack([seen[(b, t2)][1][keep] for t2 in range(T)]), axis=0)
+                views = [(a, np.full(keep.size, t), np.ones(keep.size, bool))]
+                views.append((b, first_b, np.ones(keep.size, bool)))
+            else:
+                views = [(m, np.full(keep.size, t2), seen[(m, t2)][1][keep]) for m in (a, b) for t2 in range(T)]
+            for m, tt, vis in views:
+                cm = cameras[m]
+                uvv = np.stack([seen[(m, int(x))][0][k] for k, x in zip(keep, tt)]) if two_view else \
+                    seen[(m, int(tt[0]))][0][keep]
+                noisy = uvv + rng.normal(scale=noise_px, size=uvv.shape)
+                r, okr = cm.intrinsics.unproject(noisy)
+                sel = vis & okr
+                cams.append(np.full(int(sel.sum()), m))
+                frames.append(tt[sel])
+                points.append(ids[sel])
+                rays.append(r[sel])
     obs = Observations(
         camera=np.concatenate(cams).astype(np.int64),
         frame=np.concatenate(frames).astype(np.int64),
