@@ -1,9 +1,18 @@
-"""Loop-constrained bundle adjustment on simulated correspondences (runtime ~10 s on 2 cores)."""
+"""Loop-constrained bundle adjustment on simulated correspondences (runtime ~5 s on 2 cores)."""
 
 import numpy as np
 import pytest
 
-from sgde_plugin.calib.ba import AdjustConfig, Observations, _Problem, _inv, _to_T, adjust, initial_points, robust_adjust
+from sgde_plugin.calib.ba import (
+    AdjustConfig,
+    Observations,
+    _inv,
+    _Problem,
+    _to_T,
+    adjust,
+    initial_points,
+    robust_adjust,
+)
 from sgde_plugin.calib.correspondences import PairMatches
 from sgde_plugin.calib.lie import angle_deg, exp_so3, log_so3
 from sgde_plugin.calib.methods import observations

@@ -1,0 +1,83 @@
+"""`sgde calibrate` on a rig folder: output file, report, exit codes for bad input (runtime ~3 s)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from sgde_plugin.calib.simulate import box_world_rig
+from sgde_plugin.calib.threads import torch_threads
+from sgde_plugin.cli import main
+from sgde_plugin.io import write_image
+from sgde_plugin.pairs import relative_pose_errors
+from sgde_plugin.rig import read_rig_json, write_rig_json
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    root = tmp_path_factory.mktemp("box_rig")
+    with torch_threads(1):
+        rig_true, rig, images = box_world_rig(n_frames=2)
+    for fid, per_cam in images.items():
+        for cam, img in per_cam.items():
+            write_image(root / "frames" / fid / f"{cam}.png", img)
+    write_rig_json(rig, root / "rig.json")
+    write_rig_json(rig_true, root / "rig_true.json")
+    return root
+
+
+def test_calibrate_writes_a_refined_rig(folder, tmp_path, capsys):
+    out = tmp_path / "calib" / "rig.json"
+    report = tmp_path / "report.json"
+    code = main(["calibrate", str(folder), "--out", str(out), "--json", str(report), "--frames", "0:2"])
+    assert code == 0
+    refined = read_rig_json(out)
+    block = refined.extra["calibration"]
+    assert json.loads(report.read_text()) == block
+    assert block["method"] == "glc" and block["windows"][0]["accepted"]
+    truth = read_rig_json(folder / "rig_true.json")
+    before = max(r["rotation_deg"] for r in relative_pose_errors(read_rig_json(folder / "rig.json"), truth))
+    after = max(r["rotation_deg"] for r in relative_pose_errors(refined, truth))
+    assert before > 0.5 and after < 0.15
+    text = capsys.readouterr().out
+    assert "C0-C1" in text and "1/1 windows accepted" in text
+    assert [p.name for p in out.parent.iterdir()] == ["rig.json"]  # atomic write, no leftovers
+
+
+def _broken_rig(folder, tmp_path, edit):
+    doc = json.loads((folder / "rig.json").read_text())
+    edit(doc)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "rig.json").write_text(json.dumps(doc))
+    (bad / "frames").symlink_to(folder / "frames")
+    return bad
+
+
+@pytest.mark.parametrize("problem", ["nan", "skew"])
+def test_bad_initial_extrinsic_exits_2(folder, tmp_path, capsys, problem):
+    def edit(doc):
+        T = np.array(doc["cameras"][2]["sensor_to_ego"])
+        if problem == "nan":
+            T[1, 1] = np.nan
+        else:
+            T[:3, :3] *= 1.001
+        doc["cameras"][2]["sensor_to_ego"] = T.tolist()
+
+    out = tmp_path / "out.json"
+    assert main(["calibrate", str(_broken_rig(folder, tmp_path, edit)), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "sensor_to_ego" in err
+    assert ("NaN" in err) if problem == "nan" else ("orthonormal" in err)
+    assert not out.exists()
+
+
+def test_bad_options_exit_2(folder, tmp_path, capsys):
+    out = tmp_path / "out.json"
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "one:two"]) == 2
+    assert "--frames" in capsys.readouterr().err
+    assert main(["calibrate", str(folder), "--out", str(out), "--matcher", "loftr"]) == 2
+    assert "--loftr-weights" in capsys.readouterr().err
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "5:9"]) == 2
+    assert "empty" in capsys.readouterr().err
+    assert not out.exists()

@@ -1,0 +1,120 @@
+"""Correspondences: overlap prediction, SIFT matching, USAC outlier removal, LoFTR loading (runtime ~4 s)."""
+
+import numpy as np
+import pytest
+import torch
+
+from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
+from sgde_plugin.calib.features import load_loftr, loftr_match, match_descriptors, sift_features
+from sgde_plugin.calib.lie import exp_so3
+from sgde_plugin.calib.outliers import epipolar_angle_deg, essential_inliers, rotation_to_z
+from sgde_plugin.calib.overlap import overlap_grid, pixels_per_radian
+from sgde_plugin.calib.simulate import box_world_rig
+from sgde_plugin.calib.threads import torch_threads
+from sgde_plugin.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def box():
+    with torch_threads(1):
+        return box_world_rig(n_frames=2, width=256, height=144)
+
+
+def test_rotation_to_z():
+    for v in ([1.0, 2.0, 3.0], [0.0, 0.0, -1.0], [0.0, 0.0, 2.0], [-1.0, 0.0, 0.0]):
+        R = rotation_to_z(np.array(v))
+        assert np.allclose(R @ np.array(v) / np.linalg.norm(v), [0, 0, 1], atol=1e-12)
+        assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_essential_inliers_separates_outliers_for_wide_rays():
+    """Rays up to 100 deg off axis (fisheye-like) with 30% outliers: USAC keeps the inliers."""
+    rng = np.random.default_rng(0)
+    n = 300
+    R = exp_so3(np.array([0.02, 0.9, -0.05]))  # ~52 deg between the cameras
+    t = np.array([0.6, 0.05, 0.1])
+    # points in the shared view, far to the side of camera a
+    dirs = np.array([1.0, 0.0, -0.2]) + rng.normal(scale=0.35, size=(n, 3))
+    pts = dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * rng.uniform(4, 30, size=(n, 1))
+    ra = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    pb = pts @ R.T + t
+    rb = pb / np.linalg.norm(pb, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(ra[:, 2].min())) > 95  # some rays beyond 90 deg from the axis
+    bad = rng.random(n) < 0.3
+    rb[bad] = rb[bad] @ exp_so3(rng.normal(scale=0.1, size=3)).T
+    err = epipolar_angle_deg(ra, rb, R, t)
+    assert err[~bad].max() < 1e-6 and np.median(err[bad]) > 0.5
+    inl = essential_inliers(ra, rb, threshold_px=1.0, focal_px=300.0)
+    assert inl[~bad].mean() > 0.95 and inl[bad].mean() < 0.05
+    assert not essential_inliers(ra[:6], rb[:6], 1.0, 300.0).any()  # too few to decide
+
+
+def test_overlap_grid_predicts_the_shared_view(box):
+    rig_true, _, _ = box
+    c0, c1 = rig_true.camera("C0"), rig_true.camera("C1")
+    ego = np.stack([f.ego_to_world for f in rig_true.frames])
+    g = overlap_grid(c0, c1, ego, margin_px=0.0)
+    # C1 looks 60 deg to the right of C0 (80 deg field of view): C0's right edge overlaps, its left edge not
+    h = c0.height // 2
+    right, left = np.array([[c0.width - 3.0, h]]), np.array([[2.0, h]])
+    assert g.lookup(0, 0, right)[0] and not g.lookup(0, 0, left)[0]
+    assert 0.05 < g.mask[0, 0].mean() < 0.6
+    assert np.isclose(pixels_per_radian(c0.intrinsics), c0.intrinsics.K[0, 0], rtol=1e-3)
+
+
+def test_sift_matches_follow_the_true_geometry(box):
+    rig_true, _, images = box
+    a, b = rig_true.camera("C0"), rig_true.camera("C1")
+    ka = sift_features(images["000000"]["C0"])
+    kb = sift_features(images["000000"]["C1"])
+    assert len(ka) > 100 and ka.index.tolist() == list(range(len(ka)))
+    ia, ib = match_descriptors(ka.desc, kb.desc)
+    ra, _ = a.intrinsics.unproject(ka.uv[ia])
+    rb, _ = b.intrinsics.unproject(kb.uv[ib])
+    rel = np.linalg.inv(b.sensor_to_ego) @ a.sensor_to_ego
+    err_px = np.radians(epipolar_angle_deg(ra, rb, rel[:3, :3], rel[:3, 3])) * a.intrinsics.K[0, 0]
+    assert len(ia) > 30 and np.median(err_px) < 0.5
+
+
+def test_find_correspondences_all_frame_pairs(box):
+    _, rig, images = box
+    ego = np.stack([f.ego_to_world for f in rig.frames])
+    ids = [f.id for f in rig.frames]
+    with torch_threads(1):
+        pms = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
+                                   config=MatchConfig(max_per_view_pair=40))
+    assert [(p.cam_a, p.cam_b) for p in pms] == list(rig.pairs)
+    seen = set()
+    for p in pms:
+        assert p.inliers >= len(p) > 0 and p.gated <= p.tentative
+        frame_pairs = set(zip(p.frame_a.tolist(), p.frame_b.tolist()))
+        assert {(0, 0), (1, 1)} <= frame_pairs
+        seen |= frame_pairs
+        assert np.allclose(np.linalg.norm(p.rays_a, axis=1), 1.0) and (p.kp_a >= 0).all()
+        assert (p.sigma_a >= 0.1).all()
+    assert seen == {(0, 0), (0, 1), (1, 0), (1, 1)}  # all T x T frame pairs are searched
+
+
+def test_loftr_needs_a_local_checkpoint(tmp_path):
+    with pytest.raises(InputError, match="checkpoint path"):
+        load_loftr(None)
+    with pytest.raises(InputError, match="not found"):
+        load_loftr(tmp_path / "missing.ckpt")
+    junk = tmp_path / "junk.ckpt"
+    torch.save({"state_dict": {"nope": torch.zeros(1)}}, junk)
+    with pytest.raises(InputError, match="does not fit"):
+        load_loftr(junk)
+
+
+def test_loftr_loads_weights_only_and_matches(tmp_path):
+    from kornia.feature import LoFTR
+
+    torch.manual_seed(0)
+    ckpt = tmp_path / "loftr.ckpt"
+    torch.save({"state_dict": LoFTR(pretrained=None).state_dict()}, ckpt)
+    model = load_loftr(ckpt)
+    assert not model.training
+    img = (np.random.default_rng(0).random((64, 96, 3)) * 255).astype(np.uint8)
+    with torch_threads(1):
+        uva, uvb = loftr_match(model, img, img, min_confidence=0.0)
+    assert uva.shape == uvb.shape and uva.shape[1] == 2

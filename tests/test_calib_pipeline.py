@@ -1,0 +1,126 @@
+"""calibrate(): windows, methods, acceptance rules, history by timestamp (runtime ~7 s on 2 cores)."""
+
+import numpy as np
+import pytest
+
+from sgde_plugin.calib import AcceptanceRules, calibrate, calibration_at, check_extrinsics, default_beta
+from sgde_plugin.calib.acceptance import BETA_DDAD, BETA_NUSCENES, BETA_SYNTH, check_correspondences, check_result
+from sgde_plugin.calib.simulate import box_world_rig
+from sgde_plugin.calib.threads import torch_threads
+from sgde_plugin.errors import InputError
+from sgde_plugin.pairs import relative_pose_errors
+
+
+@pytest.fixture(scope="module")
+def box():
+    with torch_threads(1):
+        rig_true, rig, images = box_world_rig(n_frames=4)
+    # the second window (frames 2 and 3) has a black camera
+    for fid in ("000002", "000003"):
+        images[fid]["C2"] = np.zeros_like(images[fid]["C2"])
+    return rig_true, rig, images
+
+
+def errors(rig, rig_true):
+    rows = relative_pose_errors(rig, rig_true)
+    return np.array([r["rotation_deg"] for r in rows]), np.array([r["translation_m"] for r in rows])
+
+
+def test_glc_window_accepted_black_camera_window_rejected(box):
+    rig_true, rig, images = box
+    out, block = calibrate(rig, lambda f, c: images[f][c], method="glc", window=2)
+    w0, w1 = block["windows"]
+    assert w0["accepted"] and w0["rule"] is None and w0["converged"] and w0["iterations"] <= 200
+    assert not w1["accepted"] and w1["rule"] == "min_correspondences"
+    assert "C2" in w1["reason"] and f"beta = {BETA_SYNTH}" in w1["reason"]
+    assert w1["iterations"] == 0  # rejected before the adjustment
+    # the output keeps the last accepted calibration, which is much better than the input
+    rot0, trans0 = errors(rig, rig_true)
+    rot, trans = errors(out, rig_true)
+    assert rot0.min() > 0.5 and rot.max() < 0.15 and trans.max() < 0.03
+    assert len(block["history"]) == 1 and block["history"][0]["from_timestamp_us"] == 0
+    at_w1 = calibration_at(block, rig.frames[2].timestamp_us)
+    for cam in out.cameras:
+        assert np.allclose(at_w1[cam.name], cam.sensor_to_ego)
+    assert calibration_at(block, -1) is None
+    assert np.allclose(out.camera("C0").sensor_to_ego, rig.camera("C0").sensor_to_ego)  # the reference
+    # the report: per pair counts and residuals
+    pair = w0["pairs"][0]
+    assert pair["inliers"] >= pair["adjusted_correspondences"] > 0 and 0 < pair["rms_px"] < 1.0
+    assert out.extra["calibration"] is block and block["method"] == "glc" and block["accepted"]
+
+
+def test_previous_calibration_is_carried_forward(box):
+    _, rig, images = box
+    first, block1 = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2))
+    second, block2 = calibrate(first, lambda f, c: images[f][c], frames=slice(2, 4))
+    assert not block2["accepted"] and block2["rule"] == "min_correspondences"
+    assert block2["history"] == block1["history"]  # the accepted window of the first run is kept
+    for cam in second.cameras:
+        assert np.array_equal(cam.sensor_to_ego, first.camera(cam.name).sensor_to_ego)
+
+
+def test_method_none_and_wo_glc(box):
+    _, rig, images = box
+    out, block = calibrate(rig, lambda f, c: images[f][c], method="none", frames=slice(0, 2))
+    assert block["windows"][0]["accepted"] and out.cameras == rig.cameras
+    out, block = calibrate(rig, lambda f, c: images[f][c], method="wo-glc", frames=slice(0, 2))
+    used = [p["used_in_adjustment"] for p in block["windows"][0]["pairs"]]
+    # a ring of 6 chained from C0: one pair (opposite the reference) stays open
+    assert used.count(False) == 1 and block["windows"][0]["pairs"][used.index(False)]["a"] == "C3"
+
+
+def test_rules_fire_with_their_names(box):
+    _, rig, images = box
+    _, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2),
+                         rules=AcceptanceRules(min_correspondences=BETA_SYNTH, max_iterations=2))
+    assert block["windows"][0]["rule"] == "not_converged" and not block["history"]
+    _, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2),
+                         rules=AcceptanceRules(min_correspondences=BETA_SYNTH, max_translation_change_m=0.001))
+    assert block["windows"][0]["rule"] == "translation_change" and "alpha = 0.001" in block["windows"][0]["reason"]
+
+
+def test_acceptance_functions():
+    rules = AcceptanceRules(min_correspondences=50, max_iterations=200, max_translation_change_m=0.3)
+    assert check_correspondences({("A", "B"): 50, ("B", "C"): 120}, rules).accepted
+    v = check_correspondences({("A", "B"): 49}, rules)
+    assert not v.accepted and v.rule == "min_correspondences" and "A-B has 49" in v.reason
+    eye = np.eye(4)
+    moved = np.eye(4)
+    moved[0, 3] = 0.31
+    before, after = {"A": eye, "B": eye}, {"A": eye, "B": moved}
+    assert check_result(True, 10, before, after, [("A", "B")], rules).rule == "translation_change"
+    assert check_result(True, 201, before, before, [("A", "B")], rules).rule == "not_converged"
+    assert check_result(False, 10, before, before, [("A", "B")], rules).rule == "not_converged"
+    assert check_result(True, 10, before, {"A": eye, "B": eye * np.nan}, [("A", "B")], rules).rule == "non_finite"
+    assert check_result(True, 200, before, before, [("A", "B")], rules).accepted
+
+
+def test_default_beta(box):
+    _, rig, _ = box
+    assert default_beta(rig) == BETA_SYNTH
+    plain = rig.with_extra(synth=None)
+    from dataclasses import replace
+
+    from sgde_plugin.cameras import Camera
+
+    renamed = replace(plain, extra={}, cameras=tuple(Camera(f"CAMERA_0{i}", c.intrinsics, c.sensor_to_ego)
+                                                      for i, c in enumerate(rig.cameras)))
+    assert default_beta(renamed) == BETA_DDAD == 200
+    renamed = replace(renamed, cameras=tuple(Camera(f"CAM_{i}", c.intrinsics, c.sensor_to_ego)
+                                             for i, c in enumerate(rig.cameras)))
+    assert default_beta(renamed) == BETA_NUSCENES == 50
+
+
+def test_bad_initial_extrinsics_are_input_errors(box):
+    _, rig, images = box
+    bad = rig.camera("C3").sensor_to_ego.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        check_extrinsics(rig.with_extrinsics({"C3": bad}))
+    skew = rig.camera("C3").sensor_to_ego.copy()
+    skew[:3, :3] *= 1.01
+    with pytest.raises(InputError, match="orthonormal"):
+        calibrate(rig.with_extrinsics({"C3": skew}), lambda f, c: images[f][c])
+    with pytest.raises(InputError, match="method"):
+        calibrate(rig, lambda f, c: images[f][c], method="bundle")
