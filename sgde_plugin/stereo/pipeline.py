@@ -44,10 +44,10 @@ class PriorConfig:
     scale: float = 0.5  # matching resolution relative to the source cameras
     min_depth: float = 1.5
     max_depth: float = 80.0
-    block_size: int = 5
+    block_size: int = 3  # SGBM settings tuned on the synthetic world (all three presets)
     p1: int = 8
     p2: int = 32
-    uniqueness: int = 10
+    uniqueness: int = 15
     speckle_window: int = 100
     speckle_range: int = 2
     lr_max_diff: float = 1.0  # left-right consistency, rectified pixels
