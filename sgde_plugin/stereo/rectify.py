@@ -128,6 +128,11 @@ def _camera_resolution(cam: Camera, rotation: np.ndarray) -> float:
     return res
 
 
+def _rows(samples: int, max_az: float, max_el: float) -> int:
+    """Number of elevation samples for `samples` azimuth samples (same tangent-plane spacing)."""
+    return max(8, int(samples * math.tan(max_el) / math.tan(max_az)))
+
+
 def _shared_sector(
     left: Camera, right: Camera, rotation: np.ndarray, max_az: float, max_el: float, samples: int
 ) -> tuple[float, float, float, float, float] | None:
@@ -137,7 +142,7 @@ def _shared_sector(
     largest horizontal distance from a right-visible direction to a left-visible one on its right.
     """
     a = np.linspace(-math.tan(max_az), math.tan(max_az), samples)
-    b = np.linspace(-math.tan(max_el), math.tan(max_el), max(8, int(samples * math.tan(max_el) / math.tan(max_az))))
+    b = np.linspace(-math.tan(max_el), math.tan(max_el), _rows(samples, max_az, max_el))
     aa, bb = np.meshgrid(a, b)
     rays = np.stack([aa, bb, np.ones_like(aa)], axis=-1)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
@@ -191,9 +196,11 @@ def _rectify_pair(
     if box is None:
         return None
     a0, a1, b0, b1, widest = box
-    step_a = 2 * math.tan(math.radians(max_azimuth_deg)) / (samples - 1)
+    az, el = math.radians(max_azimuth_deg), math.radians(max_elevation_deg)
+    step_a = 2 * math.tan(az) / (samples - 1)
+    step_b = 2 * math.tan(el) / (_rows(samples, az, el) - 1)
     a0, a1 = a0 - step_a, a1 + step_a  # the sampled box is one sample short of the true edge
-    b0, b1 = b0 - step_a, b1 + step_a
+    b0, b1 = b0 - step_b, b1 + step_b
     f = scale * 0.5 * (_camera_resolution(left, R) + _camera_resolution(right, R))
     d_depth = f * baseline / min_depth
     d_geom = f * (widest + 2 * step_a) + margin_px
