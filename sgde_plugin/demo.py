@@ -8,6 +8,7 @@ prior, test on a held-out frame -> export the prior net to ONNX and check it -> 
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -173,6 +174,10 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Call
         rigs[method] = refined
         calib_rows.append(_calibration_row(method, refined, rig_true, report))
 
+    # the demo owns these caches: a re-run rebuilds them (the calibration may differ from the last run)
+    for old in [out / f"cache_{m}" for m in (*s.methods, "true")]:
+        if old.exists():
+            shutil.rmtree(old)
     prior_rows, caches = [], {}
     config = PriorConfig()
     for method, r in rigs.items():
