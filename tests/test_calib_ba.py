@@ -63,7 +63,7 @@ def test_jacobians_match_finite_differences(scene):
     obs, _, _ = simulate_observations(cams, pairs, ego, per_view_pair=2, noise_px=0.5, rng=np.random.default_rng(1))
     prob = _Problem(S0, ego, obs, np.full(len(cams), f), 0, AdjustConfig())
     st = prob.initial_state(int(obs.point.max()) + 1)
-    pts, anchors = initial_points(S0, np.einsum("tij,jk->tik", _to_T(st.R_t, st.c_t), _inv(S0[0])), obs,
+    pts, anchors, _ = initial_points(S0, np.einsum("tij,jk->tik", _to_T(st.R_t, st.c_t), _inv(S0[0])), obs,
                                   int(obs.point.max()) + 1)
     st.set_points(pts + 0.3, anchors)
     st = prob.apply(st, np.random.default_rng(3).normal(scale=0.01, size=prob.n_full), np.zeros((len(st.rho), 3)))
@@ -165,9 +165,14 @@ def test_tracks_merge_shared_keypoints_and_split_conflicts():
     m2 = _pm("B", "C", [0], [0], [1], [9])
     # a conflict: A@1 kp 3 matched to B@1 kp 4 and kp 6 (two keypoints of one image in a track)
     m3 = _pm("A", "B", [1, 1], [1, 1], [3, 3], [4, 6])
-    tr = observations([m1, m2, m3], index)
+    # a lone cross-time match (A@0 kp 7 - B@1 kp 8) is dropped, it could be a car driving alongside
+    m4 = _pm("A", "B", [0], [1], [7], [8])
+    tr = observations([m1, m2, m3, m4], index)
     counts = np.bincount(tr.obs.point)
     assert sorted(counts.tolist()) == [2, 2, 4]
-    assert tr.edge_obs.shape == (5, 2) and list(tr.edge_pair) == [0, 0, 1, 2, 2]
-    # both observations of every edge belong to the same point
-    assert np.all(tr.obs.point[tr.edge_obs[:, 0]] == tr.obs.point[tr.edge_obs[:, 1]])
+    assert tr.edge_obs.shape == (6, 2) and list(tr.edge_pair) == [0, 0, 1, 2, 2, 3]
+    assert list(tr.edge_obs[5]) == [-1, -1]
+    # both observations of every kept edge belong to the same point
+    e = tr.edge_obs[:5]
+    assert np.all(tr.obs.point[e[:, 0]] == tr.obs.point[e[:, 1]])
+    assert len(np.bincount(observations([m4], index, min_cross_time_views=2).obs.point)) == 1

@@ -60,6 +60,7 @@ class AdjustConfig:
     pose_tol: float = 1e-5
     initial_damping: float = 1e-3
     point_iterations: int = 1
+    consensus_deg: float = 3.0
 
 
 @dataclass
@@ -164,34 +165,55 @@ def view_poses(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray) -> np.ndarra
 
 
 def initial_points(
-    sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, obs: Observations, n_points: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """World points triangulated from the first two observations of each point with the given poses, and
-    the centre of the first observing camera of each point (its anchor)."""
+    sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, obs: Observations, n_points: int,
+    consensus_deg: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangulate every point by consensus over its observations with the given poses.
+
+    Each pair of a track's observations proposes a point (midpoint of the two rays); the proposal
+    that the most observations agree with (ray within `consensus_deg`, in front of the camera) wins,
+    so one mismatched keypoint in a long track neither misplaces the point nor hides the others.
+    Returns the points, each point's anchor (centre of its first agreeing camera) and, per
+    observation, whether it agrees with its point.
+    """
     poses = view_poses(sensor_to_ego, ego_to_world)
-    order = np.argsort(obs.point, kind="stable")
-    first = np.full(n_points, -1)
-    second = np.full(n_points, -1)
-    pts_sorted = obs.point[order]
-    starts = np.searchsorted(pts_sorted, np.arange(n_points))
-    counts = np.bincount(obs.point, minlength=n_points)
-    has = counts >= 1
-    first[has] = order[starts[has]]
-    two = counts >= 2
-    second[two] = order[starts[two] + 1]
-    out = np.zeros((n_points, 3))
-    Pa = poses[obs.frame[first[has]], obs.camera[first[has]]]
-    ca, da = Pa[:, :3, 3], np.einsum("nij,nj->ni", Pa[:, :3, :3], obs.ray[first[has]])
-    idx_two = second[has]
-    cb, db = ca.copy(), da.copy()
-    sel = idx_two >= 0
-    Pb = poses[obs.frame[idx_two[sel]], obs.camera[idx_two[sel]]]
-    cb[sel] = Pb[:, :3, 3]
-    db[sel] = np.einsum("nij,nj->ni", Pb[:, :3, :3], obs.ray[idx_two[sel]])
-    out[has] = triangulate_midpoint(ca, da, cb, db)
+    P = poses[obs.frame, obs.camera]
+    centre = P[:, :3, 3]
+    direction = np.einsum("nij,nj->ni", P[:, :3, :3], obs.ray)
+    points = np.zeros((n_points, 3))
     anchors = np.zeros((n_points, 3))
-    anchors[has] = ca
-    return out, anchors
+    agree = np.zeros(len(obs), dtype=bool)
+    if not len(obs):
+        return points, anchors, agree
+    cos_tol = np.cos(np.radians(consensus_deg))
+    order = np.argsort(obs.point, kind="stable")
+    counts = np.bincount(obs.point, minlength=n_points)
+    for n in np.unique(counts[counts > 0]):
+        pts = np.flatnonzero(counts == n)
+        starts = np.searchsorted(obs.point[order], pts)
+        groups = order[starts[:, None] + np.arange(n)[None, :]]  # (G, n) observation indices
+        C, D = centre[groups], direction[groups]
+        if n == 1:
+            points[pts] = C[:, 0] + 20.0 * D[:, 0]
+            anchors[pts] = C[:, 0]
+            agree[groups[:, 0]] = True
+            continue
+        a, b = np.triu_indices(n, 1)
+        G, m = pts.size, a.size
+        X = triangulate_midpoint(C[:, a].reshape(-1, 3), D[:, a].reshape(-1, 3),
+                                 C[:, b].reshape(-1, 3), D[:, b].reshape(-1, 3)).reshape(G, m, 3)
+        v = X[:, :, None, :] - C[:, None, :, :]  # (G, m, n, 3)
+        cos = np.sum(v * D[:, None, :, :], axis=-1) / np.maximum(np.linalg.norm(v, axis=-1), 1e-12)
+        ok = cos >= cos_tol
+        score = ok.sum(-1) + 1e-3 * np.where(ok, cos, 0.0).sum(-1)
+        best = np.argmax(score, axis=1)
+        rows = np.arange(G)
+        points[pts] = X[rows, best]
+        good = ok[rows, best]  # (G, n)
+        agree[groups[good]] = True
+        first = np.argmax(good, axis=1)
+        anchors[pts] = C[rows, first]
+    return points, anchors, agree
 
 
 def soft_l1(sq: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -467,7 +489,7 @@ def adjust(
     else:
         st = prob.initial_state(n_points)
         ego_local = np.einsum("tij,jk->tik", _to_T(st.R_t, st.c_t), _inv(sensor_to_ego[reference]))
-        points, anchors = initial_points(sensor_to_ego, ego_local, obs, n_points)
+        points, anchors, _ = initial_points(sensor_to_ego, ego_local, obs, n_points, cfg.consensus_deg)
         st.set_points(points, anchors)
     r0 = prob.obs_terms(st, jacobians=False) * prob.sigma[:, None]
     initial_rms = float(np.sqrt(np.mean(np.sum(r0 * r0, axis=1)))) if len(obs) else 0.0
@@ -546,18 +568,29 @@ def robust_adjust(
 ) -> tuple[AdjustResult, np.ndarray]:
     """Adjustment in passes with outlier rejection between them; returns the result and the kept observations.
 
-    Pass 1 weighs every observation as 1 px under a Cauchy loss (scale 1 px), whose pull fades for far
+    First, observations that disagree by more than `config.consensus_deg` with their track's consensus
+    point at the input poses are dropped (mismatched keypoints joined to a good track). Pass 1 weighs
+    every observation as 1 px under a Cauchy loss (scale 1 px), whose pull fades for far
     outliers that RANSAC leaves (e.g. tracks on moving cars), where they would bend a soft-L1 fit; a
     schedule of shrinking scales (graduated non-convexity) or the bounded Geman-McClure loss can be
     chosen instead, but measured worse on the synthetic sequences. Observations with a residual above
     `coarse_reject_px` are then dropped (and points left with one observation). Pass 2 weighs each
-    observation by its own sigma (SIFT keypoints are less precise at coarse scales) under the configured
-    loss (soft-L1 by default); observations above `fine_reject_sigma` sigmas are dropped and pass 3
-    polishes. Passes warm-start from the previous one and share one iteration budget.
+    observation by its own sigma (SIFT keypoints are less precise at coarse scales), still under the
+    Cauchy loss: an outlier 100 sigmas off would weigh like 100 inliers under soft-L1, and a handful
+    of them (two-view points on a passing car) was measured to bend the ring by 0.4 deg. Observations
+    above `fine_reject_sigma` sigmas are dropped and pass 3, the final adjustment, uses the configured
+    loss (soft-L1 by default, the paper's near-L1). Passes warm-start from the previous one and share
+    one iteration budget.
     """
     cfg = config or AdjustConfig()
     sch = schedule or RobustSchedule()
     budget = cfg.max_iterations
+    n_input = len(obs)
+    # observations that disagree with their track's consensus point at the initial poses are mismatches
+    n_points = int(obs.point.max()) + 1 if len(obs) else 0
+    _, _, agree = initial_points(sensor_to_ego, ego_to_world, obs, n_points, cfg.consensus_deg)
+    obs, mask, _ = select_observations(obs, agree)
+    kept_idx = np.flatnonzero(mask)
     plain = Observations(obs.camera, obs.frame, obs.point, obs.ray)
     res, used = None, 0
     for scale in sch.coarse_scales_px:  # graduated non-convexity: a wide basin first, then sharper
@@ -568,27 +601,26 @@ def robust_adjust(
         used += res.iterations
         if os.environ.get("SGDE_BA_DEBUG"):
             print("coarse", scale, res.iterations, res.message, file=sys.stderr)
-    kept_idx = np.arange(len(obs))
     cur_obs = obs
-    for limit, in_sigmas in ((sch.coarse_reject_px, False), (sch.fine_reject_sigma, True)):
+    # pass 2 (weighted, Cauchy) after rejecting in pixels, pass 3 (weighted, configured loss) after
+    # rejecting in sigmas
+    stages = ((sch.coarse_reject_px, False, replace(cfg, loss=sch.coarse_loss)), (sch.fine_reject_sigma, True, cfg))
+    for limit, in_sigmas, stage_cfg in stages:
         if budget - used <= 0 or len(cur_obs) == 0:
             break
         err = np.linalg.norm(res.residual_px, axis=1)
         if in_sigmas and cur_obs.sigma_px is not None:
             err = err / cur_obs.sigma_px
-        good = err <= limit
-        if in_sigmas and good.all():
-            break
-        sub, mask, old_ids = select_observations(cur_obs, good)
+        sub, mask, old_ids = select_observations(cur_obs, err <= limit)
         if len(sub) == 0:
             break
         cur_obs, kept_idx = sub, kept_idx[mask]
         res = adjust(sensor_to_ego, ego_to_world, cur_obs, focal, reference,
-                     config=replace(cfg, max_iterations=budget - used), start=res, start_points=old_ids)
+                     config=replace(stage_cfg, max_iterations=budget - used), start=res, start_points=old_ids)
         used += res.iterations
         if os.environ.get("SGDE_BA_DEBUG"):
-            print("pass", limit, res.iterations, res.message, len(cur_obs), file=sys.stderr)
+            print("pass", limit, stage_cfg.loss, res.iterations, res.message, len(cur_obs), file=sys.stderr)
     res.iterations = used
-    kept = np.zeros(len(obs), dtype=bool)
+    kept = np.zeros(n_input, dtype=bool)
     kept[kept_idx] = True
     return res, kept

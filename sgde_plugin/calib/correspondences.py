@@ -27,7 +27,7 @@ class MatchConfig:
     matcher: str = "sift"
     loftr_weights: str | None = None
     max_features: int = 4000
-    contrast_threshold: float = 0.04
+    contrast_threshold: float = 0.02
     feature_scale: float = 1.0
     ratio: float = 0.8
     margin_px: float = 24.0

@@ -119,7 +119,8 @@ def calibrate(
     images(frame_id, camera) -> RGB image (default: the rig folder's files). Options: window (T, default
     7), loftr_weights, rules (AcceptanceRules; default beta for the rig's data set, see
     acceptance.default_beta, 200 iterations, alpha = 0.3 m), match_config, adjust_config, reference,
-    timings, show_progress.
+    timings, show_progress, match_cache (a dict shared between calls on the same images, e.g. to compare
+    methods: correspondences are reused when window, matcher settings and starting extrinsics agree).
     """
     with torch_threads(1):
         return _calibrate(rig, images, method, frames, matcher, **options)
@@ -140,6 +141,7 @@ def _calibrate(
     reference: str | None = None,
     timings: Timings | None = None,
     show_progress: bool | None = None,
+    match_cache: dict | None = None,
 ) -> tuple[Rig, dict]:
     if method not in METHODS:
         raise InputError(None, "method", f"unknown method {method!r} (expected one of {', '.join(METHODS)})")
@@ -190,8 +192,14 @@ def _calibrate(
             result = MethodResult({n: start[n] for n in start}, message="input extrinsics kept")
         else:
             ids = [f.id for f in win]
-            matches = find_correspondences(cams, pair_names, ego, lambda t, c, ids=ids: load(ids[t], c), masks or None,
-                                           mcfg, timings, show_progress)
+            key = (tuple(ids), repr(mcfg), tuple(start[n].tobytes() for n in sorted(start)))
+            if match_cache is not None and key in match_cache:
+                matches = match_cache[key]
+            else:
+                matches = find_correspondences(cams, pair_names, ego, lambda t, c, ids=ids: load(ids[t], c),
+                                               masks or None, mcfg, timings, show_progress)
+                if match_cache is not None:
+                    match_cache[key] = matches
             verdict = check_correspondences({(m.cam_a, m.cam_b): m.inliers for m in matches}, rules)
             if verdict.accepted:
                 t0 = time.perf_counter()

@@ -1,0 +1,149 @@
+"""`sgde bench calibrate`: GLC self-calibration on the synthetic rigs, speed, accuracy and the ablation.
+
+1. Speed and accuracy: `nuscenes`, T = 7 frames, scale 0.5, default noise (1 deg, 5 cm per camera),
+   seed 0 (what `sgde synth --preset nuscenes --frames 7 --scale 0.5` renders). Seconds of `glc`
+   split into features, matching (incl. overlap prediction), RANSAC and adjustment (target total
+   <= 30 s); adjacent relative-pose errors against the true rig (targets: rotation median <= 0.05
+   deg, max <= 0.1 deg, translation <= 2 cm).
+2. Prior quality, the paper's "effect of pose optimization" table: for `nuscenes` and `urban-fisheye`,
+   the depth prior (PriorBuilder, default PriorConfig) of every frame of the window built with the
+   extrinsics of each method (none, pairwise, wo-glc, glc) and with the true ones, evaluated against
+   the rendered ground truth: Abs Rel, Sq Rel, RMSE, delta < 1.25, coverage. Target: glc Abs Rel
+   within 1.2 x the true rig's on nuscenes.
+
+Rendering is not timed. The machine's load average is recorded: wall times on a shared machine depend
+on it. `fast`: only the speed and pose accuracy of part 1 (no prior, no ablation).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Any
+
+METHOD_ORDER = ("none", "pairwise", "wo-glc", "glc")
+TARGETS = {"seconds_total": 30.0, "rotation_median_deg": 0.05, "rotation_max_deg": 0.1, "translation_max_m": 0.02,
+           "abs_rel_over_true": 1.2}
+PRIOR_KEYS = ("abs_rel", "sq_rel", "rmse", "a1", "coverage")
+
+
+def _pose_errors(rig: Any, rig_true: Any) -> dict[str, float]:
+    import numpy as np
+
+    from ..pairs import relative_pose_errors
+
+    rows = relative_pose_errors(rig, rig_true)
+    rot = [r["rotation_deg"] for r in rows]
+    trans = [r["translation_m"] for r in rows]
+    return {"rotation_median_deg": float(np.median(rot)), "rotation_max_deg": float(max(rot)),
+            "translation_median_m": float(np.median(trans)), "translation_max_m": float(max(trans))}
+
+
+def _prior_metrics(rig: Any, seq: Any) -> dict[str, float]:
+    from ..stereo.evaluate import evaluate_priors
+    from ..stereo.pipeline import PriorBuilder, PriorConfig
+
+    builder = PriorBuilder(rig, PriorConfig())
+    priors = {fr.id: builder.build(seq.images[fr.id]) for fr in rig.frames}
+    report = evaluate_priors(seq.rig_true, lambda f, c: priors[f][c].depth, lambda f, c: seq.depths[f][c])
+    return {k: float(report["overall"][k]) for k in PRIOR_KEYS}
+
+
+def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
+    """All methods on one rendered window, sharing the correspondences; prior metrics per method."""
+    from ..calib import Timings, calibrate
+    from ..synth.sequence import synth_sequence
+    from ..tables import markdown_table
+
+    t0 = time.perf_counter()
+    seq = synth_sequence(preset, frames, seed=0, scale=scale)
+    render_s = time.perf_counter() - t0
+    cache: dict = {}
+    rows, details = [], {}
+    for method in ("glc", "wo-glc", "pairwise", "none"):  # glc first: its timing includes the matching
+        timings = Timings()
+        t0 = time.perf_counter()
+        out, block = calibrate(seq.rig, lambda f, c: seq.images[f][c], method=method, timings=timings,
+                               match_cache=cache, show_progress=False)
+        wall = time.perf_counter() - t0
+        win = block["windows"][0]
+        details[method] = {
+            "accepted": win["accepted"], "rule": win["rule"], "reason": win["reason"],
+            "iterations": win["iterations"], "wall_seconds": wall,
+            "seconds": {k: round(v, 3) for k, v in timings.seconds.items()},
+            "pairs": [{k: p[k] for k in ("a", "b", "inliers", "adjusted_correspondences", "rms_px",
+                                         "used_in_adjustment")} for p in win["pairs"]],
+            **_pose_errors(out, seq.rig_true),
+        }
+        details[method]["prior"] = _prior_metrics(out, seq)
+    details["true"] = {"prior": _prior_metrics(seq.rig_true, seq)}
+    for method in (*METHOD_ORDER, "true"):
+        d = details[method]
+        rows.append({"method": method, **{k: d["prior"][k] for k in PRIOR_KEYS},
+                     "rot_max_deg": d.get("rotation_max_deg"), "trans_max_m": d.get("translation_max_m")})
+    return {"preset": preset, "frames": frames, "scale": scale, "render_seconds": render_s, "rows": rows,
+            "methods": details, "markdown": markdown_table(rows, digits=4)}
+
+
+def run(fast: bool = False) -> dict[str, Any]:
+    """Speed and accuracy of glc on nuscenes (T = 7, scale 0.5), then the ablation on two presets."""
+    from ..calib import Timings, calibrate
+    from ..synth.sequence import synth_sequence
+
+    load_before = os.getloadavg()
+    if fast:
+        seq = synth_sequence("nuscenes", 7, seed=0, scale=0.5)
+        timings = Timings()
+        t0 = time.perf_counter()
+        out, block = calibrate(seq.rig, lambda f, c: seq.images[f][c], timings=timings, show_progress=False)
+        return {
+            "setting": "nuscenes, 7 frames, scale 0.5, seed 0, default noise, glc, sift",
+            "seconds_total": time.perf_counter() - t0,
+            "seconds": {k: round(v, 3) for k, v in timings.seconds.items()},
+            "accepted": block["windows"][0]["accepted"],
+            "rule": block["windows"][0]["rule"],
+            "inliers": [p["inliers"] for p in block["windows"][0]["pairs"]],
+            **_pose_errors(out, seq.rig_true),
+            "load_average": [load_before, os.getloadavg()],
+        }
+
+    nus = _ablation("nuscenes", 7, 0.5)
+    fish = _ablation("urban-fisheye", 7, 0.5)
+    glc = nus["methods"]["glc"]
+    true_abs_rel = nus["methods"]["true"]["prior"]["abs_rel"]
+    speed = {
+        "setting": "nuscenes, 7 frames, scale 0.5, seed 0, default noise, glc, sift",
+        "seconds_total": sum(glc["seconds"].values()),
+        "seconds": glc["seconds"],
+        "iterations": glc["iterations"],
+        "accepted": glc["accepted"],
+        **{k: glc[k] for k in ("rotation_median_deg", "rotation_max_deg", "translation_median_m",
+                               "translation_max_m")},
+        "prior_abs_rel_glc": glc["prior"]["abs_rel"],
+        "prior_abs_rel_true": true_abs_rel,
+        "abs_rel_over_true": glc["prior"]["abs_rel"] / max(true_abs_rel, 1e-12),
+    }
+    speed["meets_targets"] = {
+        "seconds_total": speed["seconds_total"] <= TARGETS["seconds_total"],
+        "rotation_median_deg": speed["rotation_median_deg"] <= TARGETS["rotation_median_deg"],
+        "rotation_max_deg": speed["rotation_max_deg"] <= TARGETS["rotation_max_deg"],
+        "translation_max_m": speed["translation_max_m"] <= TARGETS["translation_max_m"],
+        "abs_rel_over_true": speed["abs_rel_over_true"] <= TARGETS["abs_rel_over_true"],
+    }
+    return {
+        "targets": TARGETS,
+        "speed": speed,
+        "ablation": {"nuscenes": nus, "urban-fisheye": fish},
+        "command": "sgde bench calibrate --json OUT.json",
+        "load_average": [load_before, os.getloadavg()],
+    }
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    result = run(fast="--fast" in sys.argv)
+    print(json.dumps(result, indent=1, default=str))
+    for name, table in result.get("ablation", {}).items():
+        print(f"\n{name}\n{table['markdown']}")
