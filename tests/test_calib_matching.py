@@ -118,3 +118,27 @@ def test_loftr_loads_weights_only_and_matches(tmp_path):
     with torch_threads(1):
         uva, uvb = loftr_match(model, img, img, min_confidence=0.0)
     assert uva.shape == uvb.shape and uva.shape[1] == 2
+
+
+def test_fisheye_overlap_view_maps_back_to_the_fisheye():
+    from sgde_plugin.calib.views import overlap_view
+    from sgde_plugin.cameras import Camera, KannalaBrandt
+    from sgde_plugin.geometry import camera_mount
+
+    K = np.array([[40.0, 0, 79.5], [0, 40.0, 79.5], [0, 0, 1]])
+    model = KannalaBrandt(160, 160, K, np.zeros(4), 220.0)
+    front = Camera("F", model, camera_mount(0.0, np.array([0.5, 0.0, 1.6])))
+    right = Camera("R", model, camera_mount(-np.pi / 2, np.array([0.0, -0.5, 1.6])))
+    with torch_threads(1):
+        grid = overlap_grid(front, right, np.eye(4)[None], margin_px=0.0)
+        view = overlap_view(front, grid)
+        assert view is not None
+        # the view looks into the front-right quadrant, between the two optical axes
+        axis = view.camera.sensor_to_ego[:3, 2]
+        assert axis[0] > 0.2 and axis[1] < -0.2
+        uv = np.array([[10.0, 12.0], [view.camera.width // 2, view.camera.height // 2], [50.0, 70.0]])
+        src_uv, ok = model.project(view.rays_in_source(uv))
+    cols, rows = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    assert ok.all() and view.valid[rows, cols].all()
+    assert np.allclose(src_uv[:, 0], view.map_x[rows, cols], atol=1e-3)
+    assert np.allclose(src_uv[:, 1], view.map_y[rows, cols], atol=1e-3)

@@ -7,14 +7,16 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..progress import progress
 from .features import Keypoints, load_loftr, loftr_match, match_descriptors, sift_features
 from .outliers import epipolar_angle_deg, essential_inliers
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
+from .views import VirtualView, overlap_view
 
 MATCHERS = ("sift", "loftr")
 STAGES = ("features", "matching", "ransac", "adjustment")
@@ -39,6 +41,7 @@ class MatchConfig:
     sigma_per_size: float = 1.0 / 32.0
     sigma_floor_px: float = 0.1
     loftr_sigma_px: float = 0.5
+    fisheye_views: bool = True
     cross_time: bool = True
     seed: int = 0
 
@@ -139,20 +142,30 @@ def find_correspondences(
             cache[(t, name)] = image(t, name)
         return cache[(t, name)]
 
-    feats: dict[tuple[int, str], Keypoints] = {}
+    feats: dict[tuple[int, str, str], Keypoints] = {}  # (frame, camera, neighbour)
     if loftr is None:
         t0 = time.perf_counter()
         for name in progress(involved, desc="calibrate: features", enabled=show_progress):
             cam = cams[name]
+            neighbours = [o for (x, o) in grids if x == name]
+            views = {}
+            if cfg.fisheye_views and not isinstance(cam.intrinsics, Pinhole):
+                views = {o: v for o in neighbours if (v := overlap_view(cam, grids[(name, o)])) is not None}
+            static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
+            raw = [o for o in neighbours if o not in views]
             det = np.zeros((cam.height, cam.width), np.uint8)
-            for (x, _), g in grids.items():
-                if x == name:
-                    det |= g.any_mask(cam.width, cam.height)
-            if masks is not None and name in masks:
-                det[~np.asarray(masks[name], bool)] = 0
+            for o in raw:
+                det |= grids[(name, o)].any_mask(cam.width, cam.height)
+            if static is not None:
+                det[~static] = 0
             for t in range(T):
-                feats[(t, name)] = sift_features(img(t, name), det, cfg.max_features, cfg.feature_scale,
-                                               cfg.contrast_threshold)
+                picture = img(t, name)
+                if raw:
+                    kp = sift_features(picture, det, cfg.max_features, cfg.feature_scale, cfg.contrast_threshold)
+                    for o in raw:
+                        feats[(t, name, o)] = kp
+                for slot, (o, view) in enumerate(views.items()):
+                    feats[(t, name, o)] = _view_features(cam, view, picture, static, slot, cfg)
         timings.add("features", t0)
 
     out = []
@@ -164,7 +177,7 @@ def find_correspondences(
         ca, cb = cams[a], cams[b]
         t0 = time.perf_counter()
         if loftr is None:
-            fa, fb = feats[(t, a)], feats[(t2, b)]
+            fa, fb = feats[(t, a, b)], feats[(t2, b, a)]
             sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv))
             sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv))
             ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
@@ -225,6 +238,21 @@ def find_correspondences(
         pm.tentative, pm.gated, pm.view_pairs = counts[(a, b)]
         out.append(pm)
     return out
+
+
+_VIEW_INDEX_OFFSET = 1_000_000  # keypoint ids of the n-th virtual view of an image start at (n + 1) * this
+
+
+def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np.ndarray | None, slot: int,
+                   cfg: MatchConfig) -> Keypoints:
+    """SIFT on a virtual pinhole view, mapped back to the fisheye's pixels (sizes in its centre's pixels)."""
+    mask = view.valid.copy()
+    if static is not None:
+        mask &= view.warp(static.astype(np.uint8), cv2.INTER_NEAREST) > 0
+    kv = sift_features(view.warp(image), mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
+    uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
+    scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])
+    return Keypoints(uv[ok], kv.desc[ok], kv.size[ok] * scale, kv.index[ok] + (slot + 1) * _VIEW_INDEX_OFFSET)
 
 
 def _box(grid: OverlapGrid, t: int, t2: int, cam: Camera) -> tuple[int, int, int, int] | None:
