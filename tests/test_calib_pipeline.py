@@ -72,6 +72,12 @@ def test_method_none_and_wo_glc(box):
 
 def test_rules_fire_with_their_names(box):
     _, rig, images = box
+    out, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2),
+                           rules=AcceptanceRules(min_correspondences=10**6))
+    w = block["windows"][0]
+    assert w["rule"] == "min_correspondences" and "fewer than beta = 1000000" in w["reason"]
+    assert w["pairs"][0]["inliers"] > 100 and w["iterations"] == 0 and not block["history"]
+    assert out.cameras == rig.cameras  # the previous (here: input) calibration is kept
     _, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2),
                          rules=AcceptanceRules(min_correspondences=BETA_SYNTH, max_iterations=2))
     assert block["windows"][0]["rule"] == "not_converged" and not block["history"]

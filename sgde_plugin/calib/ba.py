@@ -104,6 +104,7 @@ class _State:
         self.anchor, self.m, self.rho = self.anchor[ids], self.m[ids], self.rho[ids]
 
     def copy(self) -> _State:
+        """A deep copy."""
         return _State(self.R_t.copy(), self.c_t.copy(), self.R_m.copy(), self.p_m.copy(), self.G.copy(),
                       self.anchor.copy(), self.m.copy(), self.rho.copy())
 
@@ -296,11 +297,13 @@ class _Problem:
         self.flat_ij = (self.pose_idx[self.pair_i][:, :, None] * n + self.pose_idx[self.pair_j][:, None, :]).ravel()
 
     def initial_state(self, n_points: int) -> _State:
+        """Poses from the initial extrinsics and ego poses; points still to be triangulated."""
         z = np.zeros((n_points, 3))
         return _State(self.W_local[:, :3, :3].copy(), self.W_local[:, :3, 3].copy(), self.Q0[:, :3, :3].copy(),
                       self.Q0[:, :3, 3].copy(), self.R_local.copy(), z, z + [0.0, 0.0, 1.0], np.ones(n_points))
 
     def extrinsics(self, st: _State, S_ref: np.ndarray) -> np.ndarray:
+        """sensor_to_ego (M, 4, 4) of a state, the reference camera at `S_ref`."""
         S = np.einsum("ij,mjk->mik", S_ref, _to_T(st.R_m, st.p_m))
         S[self.ref] = S_ref
         return S
@@ -367,6 +370,7 @@ class _Problem:
         return out
 
     def cost(self, st: _State) -> float:
+        """Robust observation cost plus the priors."""
         r = self.obs_terms(st, jacobians=False)
         rho, _ = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
         return float(np.sum(rho) + sum(float(x @ x) for x, _ in self.prior_terms(st)))
@@ -445,6 +449,7 @@ class _Problem:
         return np.bincount(self.obs.point, weights=rho, minlength=n_points)
 
     def apply(self, st: _State, dp: np.ndarray, dl: np.ndarray) -> _State:
+        """A new state moved by pose increments `dp` and point increments `dl`."""
         T = self.T
         new = st.copy()
         ft = dp[: 6 * T].reshape(T, 6)

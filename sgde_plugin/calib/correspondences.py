@@ -138,6 +138,7 @@ def find_correspondences(
     cache: dict[tuple[int, str], np.ndarray] = {}
 
     def img(t: int, name: str) -> np.ndarray:
+        """Each image is read once."""
         if (t, name) not in cache:
             cache[(t, name)] = image(t, name)
         return cache[(t, name)]

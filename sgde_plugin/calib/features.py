@@ -75,6 +75,7 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8
     bf = cv2.BFMatcher(cv2.NORM_L2)
 
     def best(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+        """For each row of d1, the index of its ratio-test match in d2, or -1."""
         knn = bf.knnMatch(d1, d2, k=2)
         out = np.full(d1.shape[0], -1)
         for m in knn:
