@@ -223,7 +223,8 @@ def _calibration_row(method: str, refined: Rig, rig_true: Rig, report: dict) -> 
     err = relative_pose_errors(refined, rig_true)
     rot = [e["rotation_deg"] for e in err]
     trans = [e["translation_m"] for e in err]
-    return {"method": method, "status": report.get("status", "-"),
+    status = "accepted" if report.get("accepted", True) else f"rejected ({report.get('rule')})"
+    return {"method": method, "status": status,
             "rot_err_median_deg": float(np.median(rot)), "rot_err_max_deg": float(np.max(rot)),
             "trans_err_max_cm": 100 * float(np.max(trans))}
 
