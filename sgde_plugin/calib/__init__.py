@@ -2,6 +2,9 @@
 
 `calibrate(rig, images, method="glc")` refines the extrinsics of a rig over windows of frames and
 returns the refined rig and its `calibration` report block. Methods: none, pairwise, wo-glc, glc.
+Modules: overlap (predicted overlaps), features / views (SIFT, LoFTR, fisheye virtual views),
+outliers (USAC), correspondences (all T x T frame pairs), ba (loop-constrained adjustment), methods,
+acceptance (beta, iterations, alpha), pipeline (windows and history), simulate (test scenes).
 """
 
 from .acceptance import ALPHA_M, BETA_DDAD, BETA_NUSCENES, BETA_SYNTH, AcceptanceRules, default_beta

@@ -6,6 +6,8 @@ input extrinsics), is calibrated, and is accepted or rejected by the paper's rul
 keeps the last accepted calibration. The returned rig carries the last accepted calibration and a
 `calibration` block whose `history` lists every accepted calibration with the timestamp from which
 it applies (`calibration_at` looks one up); history from an input rig's block is carried forward.
+The block's top-level `accepted` is true when at least one window of this run was accepted; each
+entry of `windows` has its own verdict, the rule that fired and a one-line reason.
 """
 
 from __future__ import annotations

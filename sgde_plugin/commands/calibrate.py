@@ -19,7 +19,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher", choices=("sift", "loftr"), default="sift", help="feature matcher (default sift)")
     parser.add_argument("--loftr-weights", default=None, metavar="CKPT",
                         help="local LoFTR checkpoint for --matcher loftr (nothing is downloaded)")
-    parser.add_argument("--window", type=int, default=7, help="frames per calibration window T (default 7)")
+    parser.add_argument("--window", type=int, default=7,
+                        help="frames per calibration window T (default 7); the frames are split into consecutive "
+                             "windows and a rejected window keeps the last accepted calibration")
     parser.add_argument("--beta", type=int, default=None,
                         help="minimum correspondences per adjacent pair (default: 200 DDAD, 50 nuScenes, 100 synth)")
     parser.add_argument("--alpha", type=float, default=0.3, help="largest accepted relative translation change, m")
