@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from sgde_plugin.calib.simulate import box_world_rig
-from sgde_plugin.calib.threads import torch_threads
 from sgde_plugin.cli import main
 from sgde_plugin.io import write_image
 from sgde_plugin.pairs import relative_pose_errors
 from sgde_plugin.rig import read_rig_json, write_rig_json
+from sgde_plugin.stereo.rectify import torch_threads
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ from sgde_plugin.calib.lie import exp_so3
 from sgde_plugin.calib.outliers import epipolar_angle_deg, essential_inliers, rotation_to_z
 from sgde_plugin.calib.overlap import overlap_grid, pixels_per_radian
 from sgde_plugin.calib.simulate import box_world_rig
-from sgde_plugin.calib.threads import torch_threads
 from sgde_plugin.errors import InputError
+from sgde_plugin.stereo.rectify import torch_threads
 
 
 @pytest.fixture(scope="module")

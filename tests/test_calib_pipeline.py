@@ -6,9 +6,9 @@ import pytest
 from sgde_plugin.calib import AcceptanceRules, calibrate, calibration_at, check_extrinsics, default_beta
 from sgde_plugin.calib.acceptance import BETA_DDAD, BETA_NUSCENES, BETA_SYNTH, check_correspondences, check_result
 from sgde_plugin.calib.simulate import box_world_rig
-from sgde_plugin.calib.threads import torch_threads
 from sgde_plugin.errors import InputError
 from sgde_plugin.pairs import relative_pose_errors
+from sgde_plugin.stereo.rectify import torch_threads
 
 
 @pytest.fixture(scope="module")

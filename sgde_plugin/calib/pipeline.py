@@ -23,12 +23,12 @@ from ..cameras import Camera
 from ..errors import InputError
 from ..geometry import ORTHONORMAL_TOL, rotation_error
 from ..rig import Frame, Rig
+from ..stereo.rectify import torch_threads
 from .acceptance import AcceptanceRules, Verdict, check_correspondences, check_result, default_beta
 from .ba import AdjustConfig
 from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences
 from .lie import angle_deg
 from .methods import METHODS, MethodResult, run_method
-from .threads import torch_threads
 
 CALIB_VERSION = "1"
 DEFAULT_WINDOW = 7

@@ -141,7 +141,7 @@ def render_box_world(
     """
     import cv2
 
-    from .threads import torch_threads
+    from ..stereo.rectify import torch_threads
 
     with torch_threads(1):
         rays, valid = camera.intrinsics.ray_grid()
