@@ -12,8 +12,6 @@ the source camera model (pinhole, Kannala-Brandt or ocam), so there is no double
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import cv2
@@ -22,24 +20,9 @@ import torch
 
 from ..cameras import Camera, Pinhole
 from ..pairs import left_right
+from ..threads import torch_threads  # noqa: F401 - re-exported
 
 DISPARITY_STEP = 16  # SGBM wants a multiple of 16
-
-
-@contextmanager
-def torch_threads(n: int = 1) -> Iterator[None]:
-    """Run a block with `n` torch intra-op threads (restored afterwards).
-
-    The camera maths here is element-wise on arrays of a few hundred thousand values: threads
-    gain little, and on a busy machine (or next to other worker processes) OpenMP threads that
-    wait for each other can make it tens of times slower.
-    """
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 @dataclass(frozen=True, eq=False)

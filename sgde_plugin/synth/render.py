@@ -10,9 +10,7 @@ float32 ray parameters keep the depth accurate to ~1e-6 relative.
 
 from __future__ import annotations
 
-import contextlib
 import functools
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera, CameraModel
+from ..threads import torch_threads  # noqa: F401 - re-exported
 from .shading import shade
 from .world import World
 
@@ -27,23 +26,6 @@ TILE_PX = 16
 MAX_DISTANCE_M = 400.0  # primitives farther than this are not drawn
 MAX_DEPTH_M = 250.0  # ground truth beyond this is "no value" (depth PNGs stop at 255.99 m)
 _CONE_MARGIN = 2e-3
-
-
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
-    """Run torch's intra-op work on `n` threads inside the block, then restore the previous count.
-
-    Rendering is many medium-sized element-wise ops; on a busy machine OpenMP workers spinning
-    for each op can cost 10x, so the renderer runs single-threaded and parallelises over cameras.
-    """
-    old = torch.get_num_threads()
-    if old != n:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        if old != n:
-            torch.set_num_threads(old)
 
 
 @dataclass(frozen=True, eq=False)
