@@ -62,13 +62,19 @@ def _build(rig: Any, out: Path, workers: int) -> dict[str, float]:
 
 def _best_builds(rig: Any, tmp: Path, reps: int) -> tuple[dict[str, float], dict[str, float]]:
     """1- and 2-worker builds, alternated `reps` times; the best steady throughput of each (the
-    machine may be shared: alternating and keeping the best rejects most of others' load)."""
+    machine may be shared: alternating and keeping the best rejects most of others' load), with
+    the shortest total time over the repetitions as `best_seconds` (the first 2-worker build also
+    starts the fork server, a one-off cost per process)."""
     best: dict[int, dict[str, float]] = {}
+    shortest: dict[int, float] = {}
     for rep in range(reps):
         for workers in (1, 2):
             row = _build(rig, tmp / f"cache{workers}_{rep}", workers)
+            shortest[workers] = min(shortest.get(workers, float("inf")), row["seconds"])
             if workers not in best or row["frames_per_s_steady"] > best[workers]["frames_per_s_steady"]:
                 best[workers] = row
+    for workers in (1, 2):
+        best[workers]["best_seconds"] = shortest[workers]
     return best[1], best[2]
 
 
@@ -139,7 +145,7 @@ def run(fast: bool = False) -> dict[str, Any]:
     from ..cache.store import store_keys
     from ..tables import markdown_table
 
-    rendered, frames, reads, reps = (1, 6, 50, 1) if fast else (3, 24, 300, 2)
+    rendered, frames, reads, reps = (1, 6, 50, 1) if fast else (3, 60, 300, 2)
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="sgde-bench-cache-") as tmp_name:
         tmp = Path(tmp_name)
@@ -174,7 +180,7 @@ def run(fast: bool = False) -> dict[str, Any]:
         "build_1_worker": b1,
         "build_2_workers": b2,
         "build_speedup_2_workers": speedup,
-        "build_speedup_2_workers_total_time": b1["seconds"] / b2["seconds"],
+        "build_speedup_2_workers_total_time": b1["best_seconds"] / b2["best_seconds"],
         "targets": TARGETS,
         "meets": {
             "bytes_per_image": per_image <= TARGETS["bytes_per_image"],
