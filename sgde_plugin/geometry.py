@@ -21,17 +21,19 @@ def is_rotation(R: np.ndarray, tol: float = ORTHONORMAL_TOL) -> bool:
 
 
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """4x4 homogeneous transform from a rotation and a translation."""
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    """Homogeneous transform(s) (..., 4, 4) from rotation(s) (..., 3, 3) and translation(s) (..., 3)."""
+    R = np.asarray(R, dtype=np.float64)
+    T = np.zeros((*R.shape[:-2], 4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = np.asarray(t, dtype=np.float64).reshape(*R.shape[:-2], 3)
+    T[..., 3, 3] = 1.0
     return T
 
 
 def invert_transform(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    R, t = T[:3, :3], T[:3, 3]
-    return make_transform(R.T, -R.T @ t)
+    """Inverse of rigid transform(s) (..., 4, 4)."""
+    R = np.swapaxes(np.asarray(T, dtype=np.float64)[..., :3, :3], -1, -2)
+    return make_transform(R, -np.einsum("...ij,...j->...i", R, T[..., :3, 3]))
 
 
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -39,37 +41,59 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def skew(w: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
+    w = np.asarray(w, dtype=np.float64)
+    z = np.zeros(w.shape[:-1])
+    return np.stack(
+        [
+            np.stack([z, -w[..., 2], w[..., 1]], axis=-1),
+            np.stack([w[..., 2], z, -w[..., 0]], axis=-1),
+            np.stack([-w[..., 1], w[..., 0], z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
 def rodrigues(rvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (axis * angle, radians)."""
-    rvec = np.asarray(rvec, dtype=np.float64).reshape(3)
-    angle = np.linalg.norm(rvec)
-    if angle < 1e-12:
-        return np.eye(3)
-    k = rvec / angle
-    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * (Kx @ Kx)
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (axis * angle, radians; exact near 0)."""
+    w = np.asarray(rvec, dtype=np.float64)
+    theta2 = np.sum(w * w, axis=-1)
+    theta = np.sqrt(theta2)
+    small = theta < 1e-8
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / (safe * safe))
+    K = skew(w)
+    return np.eye(3) + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle) of a rotation matrix."""
+    """Rotation vectors (..., 3) (axis * angle) of rotation matrices (..., 3, 3), angles up to pi."""
     R = np.asarray(R, dtype=np.float64)
-    cos = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
-    angle = np.arccos(cos)
-    if angle < 1e-12:
-        return np.zeros(3)
-    if np.pi - angle < 1e-6:
-        # near pi: axis from the largest diagonal entry of (R + I) / 2
-        B = (R + np.eye(3)) / 2
-        i = int(np.argmax(np.diag(B)))
-        axis = B[:, i] / np.sqrt(B[i, i])
-        return axis / np.linalg.norm(axis) * angle
-    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle))
-    return axis * angle
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    sin = np.sin(theta)
+    small = sin < 1e-8
+    out = v * np.where(small, 0.5, theta / (2.0 * np.where(small, 1.0, sin)))[..., None]
+    near_pi = np.pi - theta < 1e-6
+    if np.any(near_pi):
+        # v vanishes at pi: the axis is the largest column of (R + I) / 2
+        flat_R, flat_out = R.reshape(-1, 3, 3), out.reshape(-1, 3)
+        for k in np.flatnonzero(near_pi.reshape(-1)):
+            B = (flat_R[k] + np.eye(3)) / 2
+            i = int(np.argmax(np.diag(B)))
+            axis = B[:, i] / np.sqrt(B[i, i])
+            flat_out[k] = axis / np.linalg.norm(axis) * theta.reshape(-1)[k]
+        out = flat_out.reshape(out.shape)
+    return out
 
 
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix in degrees."""
-    return float(np.degrees(np.linalg.norm(rotation_vector(R))))
+def rotation_angle_deg(R: np.ndarray) -> float | np.ndarray:
+    """Angle in degrees of a rotation matrix (a float), or of each of (..., 3, 3) (an array)."""
+    angle = np.degrees(np.linalg.norm(rotation_vector(R), axis=-1))
+    return float(angle) if np.ndim(angle) == 0 else angle
 
 
 def quaternion_to_rotation(q_wxyz: np.ndarray) -> np.ndarray:

@@ -6,11 +6,11 @@ import torch
 
 from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
 from sgde_plugin.calib.features import load_loftr, loftr_match, match_descriptors, sift_features
-from sgde_plugin.calib.lie import exp_so3
 from sgde_plugin.calib.outliers import epipolar_angle_deg, essential_inliers, rotation_to_z
 from sgde_plugin.calib.overlap import overlap_grid, pixels_per_radian
 from sgde_plugin.calib.simulate import box_world_rig
 from sgde_plugin.errors import InputError
+from sgde_plugin.geometry import rodrigues
 from sgde_plugin.stereo.rectify import torch_threads
 
 
@@ -31,7 +31,7 @@ def test_essential_inliers_separates_outliers_for_wide_rays():
     """Rays up to 100 deg off axis (fisheye-like) with 30% outliers: USAC keeps the inliers."""
     rng = np.random.default_rng(0)
     n = 300
-    R = exp_so3(np.array([0.02, 0.9, -0.05]))  # ~52 deg between the cameras
+    R = rodrigues(np.array([0.02, 0.9, -0.05]))  # ~52 deg between the cameras
     t = np.array([0.6, 0.05, 0.1])
     # points in the shared view, far to the side of camera a
     dirs = np.array([1.0, 0.0, -0.2]) + rng.normal(scale=0.35, size=(n, 3))
@@ -41,7 +41,7 @@ def test_essential_inliers_separates_outliers_for_wide_rays():
     rb = pb / np.linalg.norm(pb, axis=1, keepdims=True)
     assert np.degrees(np.arccos(ra[:, 2].min())) > 95  # some rays beyond 90 deg from the axis
     bad = rng.random(n) < 0.3
-    rb[bad] = rb[bad] @ exp_so3(rng.normal(scale=0.1, size=3)).T
+    rb[bad] = rb[bad] @ rodrigues(rng.normal(scale=0.1, size=3)).T
     err = epipolar_angle_deg(ra, rb, R, t)
     assert err[~bad].max() < 1e-6 and np.median(err[bad]) > 0.5
     inl = essential_inliers(ra, rb, threshold_px=1.0, focal_px=300.0)

@@ -186,3 +186,20 @@ def test_relative_pose_errors_measure_the_perturbation() -> None:
     assert abs(errs["CAM_FRONT-CAM_FRONT_RIGHT"]["translation_m"] - 0.03) < 1e-9
     assert abs(errs["CAM_FRONT_RIGHT-CAM_BACK_RIGHT"]["rotation_deg"] - 0.5) < 1e-9
     assert errs["CAM_BACK-CAM_BACK_LEFT"]["rotation_deg"] < 1e-9
+
+
+def test_rotation_vector_batched_and_near_pi():
+    from sgde_plugin.geometry import invert_transform, make_transform, rodrigues, rotation_angle_deg, rotation_vector
+
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=(5, 3))
+    w *= (np.linspace(0.0, np.pi - 1e-9, 5) / np.maximum(np.linalg.norm(w, axis=1), 1e-12))[:, None]
+    R = rodrigues(w)
+    assert R.shape == (5, 3, 3)
+    back = rotation_vector(R)
+    # at pi the sign of the axis is free: compare the rotations, and the angles
+    assert np.allclose(rodrigues(back), R, atol=1e-7)
+    assert np.allclose(rotation_angle_deg(R), np.degrees(np.linalg.norm(w, axis=1)), atol=1e-5)
+    assert isinstance(rotation_angle_deg(R[1]), float)
+    T = make_transform(R, rng.normal(size=(5, 3)))
+    assert np.allclose(np.einsum("nij,njk->nik", T, invert_transform(T)), np.eye(4), atol=1e-12)

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .lie import exp_so3, log_so3, skew, tangent_basis
+from ..geometry import invert_transform, make_transform, rodrigues, rotation_vector, skew
 
 
 @dataclass(frozen=True)
@@ -122,19 +122,6 @@ class AdjustResult:
     initial_rms_px: float
     final_rms_px: float
     state: _State | None = field(default=None, repr=False)
-
-
-def _to_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.zeros((*R.shape[:-2], 4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = t
-    T[..., 3, 3] = 1.0
-    return T
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    R = np.swapaxes(T[..., :3, :3], -1, -2)
-    return _to_T(R, -np.einsum("...ij,...j->...i", R, T[..., :3, 3]))
 
 
 def triangulate_midpoint(
@@ -238,6 +225,16 @@ def geman_mcclure(sq: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
 LOSSES = {"soft_l1": soft_l1, "cauchy": cauchy, "geman_mcclure": geman_mcclure}
 
 
+def tangent_basis(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors orthogonal to each unit ray (N, 3) and to each other: (N, 3), (N, 3)."""
+    rays = np.asarray(rays, dtype=np.float64)
+    helper = np.where(np.abs(rays[:, 1:2]) < 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))
+    e1 = np.cross(helper, rays)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(rays, e1)
+    return e1, e2
+
+
 def _pair_indices(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All ordered pairs (i, j) of observations of the same point (i == j included)."""
     order = np.argsort(point, kind="stable")
@@ -269,12 +266,12 @@ class _Problem:
         S_ref = sensor_to_ego[reference]
         W = np.einsum("tij,jk->tik", ego_to_world, S_ref)  # reference camera -> ego world, initial mount
         self.W = W
-        to_local = _inv(W[0])  # the adjustment world is the reference camera in frame 0
+        to_local = invert_transform(W[0])  # the adjustment world is the reference camera in frame 0
         self.W_local = np.einsum("ij,tjk->tik", to_local, W)
         self.R_local = to_local[:3, :3]
         self.d_t = W[:, :3, 3] - W[0, :3, 3]  # ego-world displacement of the reference camera
         self.dR_t = np.einsum("tij,kj->tik", W[:, :3, :3], W[0, :3, :3])  # ego-world rotation 0 -> t
-        Q0 = np.einsum("ij,mjk->mik", _inv(S_ref), sensor_to_ego)
+        Q0 = np.einsum("ij,mjk->mik", invert_transform(S_ref), sensor_to_ego)
         Q0[reference] = np.eye(4)
         self.Q0 = Q0
         self.others = [m for m in range(self.M) if m != reference]
@@ -304,7 +301,7 @@ class _Problem:
 
     def extrinsics(self, st: _State, S_ref: np.ndarray) -> np.ndarray:
         """sensor_to_ego (M, 4, 4) of a state, the reference camera at `S_ref`."""
-        S = np.einsum("ij,mjk->mik", S_ref, _to_T(st.R_m, st.p_m))
+        S = np.einsum("ij,mjk->mik", S_ref, make_transform(st.R_m, st.p_m))
         S[self.ref] = S_ref
         return S
 
@@ -356,16 +353,16 @@ class _Problem:
         s_g = 1.0 / np.radians(cfg.sigma_gauge_rot_deg)
         s_rr, s_rt = 1.0 / np.radians(cfg.sigma_rel_rot_deg), 1.0 / cfg.sigma_rel_t_m
         G, gi = st.G, self.g_idx
-        out.append((log_so3(G @ self.R_local.T) * s_g, [(gi, s_g * eye)]))
+        out.append((rotation_vector(G @ self.R_local.T) * s_g, [(gi, s_g * eye)]))
         for t in range(1, self.T):
             Gd = G @ self.d_t[t]
             out.append(((st.c_t[t] - st.c_t[0] - Gd) * s_c, [(6 * t + 3, s_c * eye), (gi, s_c * skew(Gd))]))
             A = st.R_t[t] @ st.R_t[0].T
             B = G @ self.dR_t[t] @ G.T
-            out.append((log_so3(A @ B.T) * s_e, [(6 * t, s_e * eye), (gi, s_e * (A - eye))]))
+            out.append((rotation_vector(A @ B.T) * s_e, [(6 * t, s_e * eye), (gi, s_e * (A - eye))]))
         for s_, m in enumerate(self.others):
             base = 6 * self.T + 6 * s_
-            out.append((log_so3(st.R_m[m] @ self.Q0[m, :3, :3].T) * s_rr, [(base, s_rr * eye)]))
+            out.append((rotation_vector(st.R_m[m] @ self.Q0[m, :3, :3].T) * s_rr, [(base, s_rr * eye)]))
             out.append(((st.p_m[m] - self.Q0[m, :3, 3]) * s_rt, [(base + 3, s_rt * eye)]))
         return out
 
@@ -453,13 +450,13 @@ class _Problem:
         T = self.T
         new = st.copy()
         ft = dp[: 6 * T].reshape(T, 6)
-        new.R_t = exp_so3(ft[:, :3]) @ st.R_t
+        new.R_t = rodrigues(ft[:, :3]) @ st.R_t
         new.c_t = st.c_t + ft[:, 3:]
         for s_, m in enumerate(self.others):
             b = 6 * T + 6 * s_
-            new.R_m[m] = exp_so3(dp[b : b + 3]) @ st.R_m[m]
+            new.R_m[m] = rodrigues(dp[b : b + 3]) @ st.R_m[m]
             new.p_m[m] = st.p_m[m] + dp[b + 3 : b + 6]
-        new.G = exp_so3(dp[self.g_idx : self.g_idx + 3]) @ st.G
+        new.G = rodrigues(dp[self.g_idx : self.g_idx + 3]) @ st.G
         self.move_points(new, dl)
         return new
 
@@ -493,7 +490,7 @@ def adjust(
             st.subset(start_points)
     else:
         st = prob.initial_state(n_points)
-        ego_local = np.einsum("tij,jk->tik", _to_T(st.R_t, st.c_t), _inv(sensor_to_ego[reference]))
+        ego_local = np.einsum("tij,jk->tik", make_transform(st.R_t, st.c_t), invert_transform(sensor_to_ego[reference]))
         points, anchors, _ = initial_points(sensor_to_ego, ego_local, obs, n_points, cfg.consensus_deg)
         st.set_points(points, anchors)
     r0 = prob.obs_terms(st, jacobians=False) * prob.sigma[:, None]

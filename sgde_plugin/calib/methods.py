@@ -32,9 +32,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..cameras import Camera
+from ..geometry import rotation_angle_deg
 from .ba import AdjustConfig, AdjustResult, Observations, robust_adjust, select_observations
 from .correspondences import PairMatches
-from .lie import angle_deg
 from .outliers import rotation_to_z
 from .overlap import pixels_per_radian
 
@@ -296,7 +296,7 @@ def _essential_init(cp: Camera, cc: Camera, pm: PairMatches) -> np.ndarray:
     # A planar or distant scene makes the essential matrix degenerate; then the input pose is the better start.
     cos_dir = float(t @ rel0[:3, 3]) / max(np.linalg.norm(t) * length, 1e-12)
     direction_deg = np.degrees(np.arccos(min(1.0, cos_dir)))
-    if angle_deg(R @ rel0[:3, :3].T) > MAX_INIT_ROTATION_DEG or direction_deg > MAX_INIT_DIRECTION_DEG:
+    if rotation_angle_deg(R @ rel0[:3, :3].T) > MAX_INIT_ROTATION_DEG or direction_deg > MAX_INIT_DIRECTION_DEG:
         return cc.sensor_to_ego
     rel = np.eye(4)
     rel[:3, :3], rel[:3, 3] = R, t / max(np.linalg.norm(t), 1e-12) * length

@@ -21,13 +21,12 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import InputError
-from ..geometry import ORTHONORMAL_TOL, rotation_error
+from ..geometry import ORTHONORMAL_TOL, rotation_angle_deg, rotation_error
 from ..rig import Frame, Rig
 from ..stereo.rectify import torch_threads
 from .acceptance import AcceptanceRules, Verdict, check_correspondences, check_result, default_beta
 from .ba import AdjustConfig
 from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences
-from .lie import angle_deg
 from .methods import METHODS, MethodResult, run_method
 
 CALIB_VERSION = "1"
@@ -103,7 +102,7 @@ def _changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], 
     for a, b in pairs:
         r0 = np.linalg.inv(before[a]) @ before[b]
         r1 = np.linalg.inv(after[a]) @ after[b]
-        rot = max(rot, float(angle_deg(r0[:3, :3].T @ r1[:3, :3])))
+        rot = max(rot, float(rotation_angle_deg(r0[:3, :3].T @ r1[:3, :3])))
         trans = max(trans, float(np.linalg.norm(r1[:3, 3] - r0[:3, 3])))
     return rot, trans
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..cameras import Camera
+from ..geometry import rodrigues
 from .ba import Observations
-from .lie import exp_so3
 
 
 def straight_drive(n_frames: int, step_m: float = 1.0, yaw_step_deg: float = 1.0) -> np.ndarray:
@@ -34,7 +34,7 @@ def perturb_extrinsics(
     for m in range(out.shape[0]):
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
-        out[m, :3, :3] = exp_so3(axis * np.radians(rot_deg)) @ out[m, :3, :3]
+        out[m, :3, :3] = rodrigues(axis * np.radians(rot_deg)) @ out[m, :3, :3]
         d = rng.normal(size=3)
         out[m, :3, 3] += d / np.linalg.norm(d) * trans_m
     return out
