@@ -62,3 +62,49 @@ def test_prior_channel_stem_zero_prior():
     rgb = torch.randn(3, 3, 32, 32)
     prior = torch.zeros(3, 1, 32, 32)
     assert torch.allclose(stem(rgb, prior), conv(rgb), atol=1e-6)
+
+
+@pytest.mark.parametrize("validity", [False, True])
+def test_factored_stem_equals_full_at_start(validity):
+    torch.manual_seed(0)
+    conv = nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False)
+    full = widen_first_conv(conv, validity=validity)
+    factored = widen_first_conv(conv, validity=validity, mode="factored", rank=4)
+    x = torch.rand(2, 4 + int(validity), 40, 56)
+    with torch.no_grad():
+        assert (factored(x) - full(x)).abs().max().item() <= 1e-5
+        assert torch.allclose(factored.full_weight(), full.weight, atol=1e-7)
+        # zero prior: exactly the original convolution
+        x[:, 3:] = 0
+        assert torch.equal(factored(x), conv(x[:, :3]))
+
+
+def test_factored_stem_trains_its_own_prior_kernel():
+    torch.manual_seed(0)
+    conv = nn.Conv2d(3, 8, 7, stride=2, padding=3, bias=False)
+    factored = widen_first_conv(conv, mode="factored", rank=2)
+    x = torch.rand(1, 4, 16, 16)
+    factored(x).square().sum().backward()
+    # the zero-initialised 1x1 mix gets a gradient, so the low-rank kernel leaves zero after a step
+    assert factored.mix.weight.grad.abs().max().item() > 1e-4
+    assert factored.conv.weight.grad.abs().max().item() > 1e-4
+    # after one step the basis trains too, and the equivalent kernel has left the mean of RGB
+    opt = torch.optim.SGD(factored.parameters(), lr=0.1)
+    opt.step()
+    opt.zero_grad()
+    factored(x).square().sum().backward()
+    assert factored.basis.weight.grad.abs().max().item() > 1e-6
+    w = factored.full_weight()
+    assert (w[:, 3] - w[:, :3].mean(dim=1)).abs().max().item() > 1e-4
+    with pytest.raises(ValueError):
+        widen_first_conv(conv, mode="sparse")
+
+
+def test_factored_stem_in_resnet18_zero_prior():
+    torch.manual_seed(0)
+    ref = torchvision.models.resnet18(weights=None).eval()
+    wide = widen_first_conv(copy.deepcopy(ref), validity=True, mode="factored").eval()
+    x = torch.randn(2, 3, 64, 96)
+    with torch.no_grad():
+        diff = (wide(torch.cat([x, torch.zeros(2, 2, 64, 96)], 1)) - ref(x)).abs().max().item()
+    assert diff <= 1e-6

@@ -45,11 +45,11 @@ class ResNet18Encoder(nn.Module):
     """ResNet-18 features at strides 2, 4, 8, 16, 32 for RGB (+ prior channels)."""
 
     def __init__(self, extra_channels: int = 0, validity: bool = False,
-                 weights_path: str | Path | None = None) -> None:
+                 weights_path: str | Path | None = None, stem: str = "full") -> None:
         super().__init__()
         net = load_resnet18(weights_path)
         if extra_channels or validity:
-            widen_first_conv(net, extra_channels=extra_channels, validity=validity)
+            widen_first_conv(net, extra_channels=extra_channels, validity=validity, mode=stem)
         self.conv1, self.bn1, self.relu, self.maxpool = net.conv1, net.bn1, net.relu, net.maxpool
         self.layer1, self.layer2, self.layer3, self.layer4 = net.layer1, net.layer2, net.layer3, net.layer4
 
@@ -124,6 +124,7 @@ class DepthNet(nn.Module):
     0 = none; ``valid`` optional bool mask applied to the prior. Returns a dict with
     ``("disp", s)`` (sigmoid output) and ``("depth", s)`` (metres in [min_depth, max_depth]) for
     each scale s (resolution H/2^s). ``use_prior=False`` is the plain 3-channel baseline.
+    ``stem`` is the prior-channel stem's form, ``"full"`` (the paper) or ``"factored"`` (see ``nn.stem``).
     """
 
     def __init__(
@@ -135,6 +136,7 @@ class DepthNet(nn.Module):
         prior_max_depth: float | None = None,
         scales: tuple[int, ...] = (0, 1, 2, 3),
         weights_path: str | Path | None = None,
+        stem: str = "full",
     ) -> None:
         super().__init__()
         if not 0 < min_depth < max_depth:
@@ -145,7 +147,8 @@ class DepthNet(nn.Module):
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
         self.scales = tuple(scales)
         self.encoding = PriorEncoding(prior_max_depth or max_depth, with_validity=validity) if use_prior else None
-        self.encoder = ResNet18Encoder(extra_channels=int(use_prior), validity=validity, weights_path=weights_path)
+        self.encoder = ResNet18Encoder(extra_channels=int(use_prior), validity=validity, weights_path=weights_path,
+                                       stem=stem)
         self.decoder = DepthDecoder(ENCODER_CHANNELS, self.scales)
         self.register_buffer("rgb_mean", torch.tensor(IMAGENET_MEAN).reshape(1, 3, 1, 1), persistent=False)
         self.register_buffer("rgb_std", torch.tensor(IMAGENET_STD).reshape(1, 3, 1, 1), persistent=False)
@@ -172,7 +175,7 @@ class DepthNet(nn.Module):
 
     @classmethod
     def with_prior_from(cls, baseline: DepthNet, validity: bool = False,
-                        prior_max_depth: float | None = None) -> DepthNet:
+                        prior_max_depth: float | None = None, stem: str = "full") -> DepthNet:
         """A prior-input copy of a (trained) 3-channel ``baseline``: same weights, widened first conv.
 
         With an all-zero prior it computes exactly what the baseline computes.
@@ -182,7 +185,7 @@ class DepthNet(nn.Module):
         net = copy.deepcopy(baseline)
         net.use_prior = True
         net.encoding = PriorEncoding(prior_max_depth or baseline.max_depth, with_validity=validity)
-        net.encoder.conv1 = widen_first_conv(net.encoder.conv1, 1, validity)
+        net.encoder.conv1 = widen_first_conv(net.encoder.conv1, 1, validity, mode=stem)
         return net
 
     def predict(self, rgb: Tensor, prior: Tensor | None = None, valid: Tensor | None = None) -> Tensor:

@@ -1,6 +1,22 @@
-"""Prior-channel stem: widen the first convolution of a backbone from RGB to RGB + prior (+ validity)."""
+"""Prior-channel stem: widen the first convolution of a backbone from RGB to RGB + prior (+ validity).
+
+Two forms, equal at initialisation:
+
+- ``"full"`` (the SGDE paper): one convolution over RGB + prior (+ validity); the prior's kernel starts
+  at the mean of the RGB kernels. On ResNet's 7x7/2 conv1 each extra input adds a third of conv1,
+  about 2.2 % of ResNet-18's FLOPs.
+- ``"factored"``: the same map written as ``conv_rgb(rgb + prior / 3) + U(B(prior, validity))``. The
+  fixed fold (the prior added to each RGB input with gain 1/3) is the mean-of-RGB prior kernel, which
+  keeps following the RGB kernels as they train; ``B`` (``rank`` 7x7 filters) and ``U`` (1x1, zero at
+  start) are a learned low-rank kernel of the prior's own. At ``rank=4`` it adds under 0.4 % of
+  ResNet-18's FLOPs; the prior's kernel is restricted to mean(W_rgb) plus a rank-4 term. The fold is
+  fixed on purpose: a learned gain would make conv1 compute its input gradient (a full conv1 more
+  in every backward pass).
+"""
 
 from __future__ import annotations
+
+import copy
 
 import torch
 from torch import nn
@@ -26,19 +42,74 @@ def find_first_conv(module: nn.Module, in_channels: int | None = 3) -> tuple[nn.
     raise ValueError(f"no nn.Conv2d{want} found in {type(module).__name__}")
 
 
-def widened_conv(conv: nn.Conv2d, extra_channels: int = 1, validity: bool = False) -> nn.Conv2d:
-    """A copy of ``conv`` with ``extra_channels`` prior inputs (+1 validity input) appended.
+STEM_MODES = ("full", "factored")
 
-    Prior channels start at the mean of the existing (RGB) input weights, as in the SGDE paper;
-    the validity channel starts at zero. The original input weights and the bias are copied
-    unchanged, so with zero extra inputs the result equals the original convolution.
-    """
+
+def _check_conv(conv: nn.Module, extra_channels: int) -> None:
     if not isinstance(conv, nn.Conv2d):
         raise TypeError(f"expected nn.Conv2d, got {type(conv).__name__}")
     if conv.groups != 1:
         raise ValueError("cannot widen a grouped convolution")
     if extra_channels < 0:
         raise ValueError(f"extra_channels must be >= 0, got {extra_channels}")
+
+
+class FactoredPriorConv(nn.Module):
+    """A first convolution over RGB + prior (+ validity) at almost the cost of the RGB one.
+
+    ``forward(x)`` takes the same [B, 3 + extra (+1), H, W] input as the widened ``nn.Conv2d`` and,
+    as built by ``widened_conv(..., mode="factored")``, returns the same output at initialisation.
+    """
+
+    def __init__(self, conv: nn.Conv2d, extra_channels: int = 1, validity: bool = False, rank: int = 4) -> None:
+        super().__init__()
+        _check_conv(conv, extra_channels)
+        if rank < 1:
+            raise ValueError(f"rank must be >= 1, got {rank}")
+        self.rgb_channels = conv.in_channels
+        self.extra_channels = extra_channels
+        n_new = extra_channels + int(validity)
+        self.in_channels = conv.in_channels + n_new
+        self.out_channels = conv.out_channels
+        self.conv = copy.deepcopy(conv)
+        factory = {"device": conv.weight.device, "dtype": conv.weight.dtype}
+        # prior_j enters every RGB input with gain 1/3: conv_rgb(rgb + p/3) = conv_rgb(rgb) + conv(p, mean W_rgb)
+        fold = torch.zeros(conv.in_channels, n_new, 1, 1, **factory)
+        fold[:, :extra_channels] = 1.0 / conv.in_channels
+        self.register_buffer("fold", fold)
+        self.basis = nn.Conv2d(n_new, rank, conv.kernel_size, conv.stride, conv.padding, conv.dilation,
+                               bias=False, padding_mode=conv.padding_mode, **factory)
+        self.mix = nn.Conv2d(rank, conv.out_channels, 1, bias=False, **factory)
+        nn.init.zeros_(self.mix.weight)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """[B, C_rgb + extra, H, W] -> the first layer's output."""
+        rgb, extra = x[:, : self.rgb_channels], x[:, self.rgb_channels:]
+        folded = rgb + nn.functional.conv2d(extra, self.fold)
+        return self.conv(folded) + self.mix(self.basis(extra))
+
+    def full_weight(self) -> torch.Tensor:
+        """The equivalent single-convolution kernel [out, C_rgb + extra, kh, kw] (for inspection)."""
+        w = self.conv.weight
+        folded = torch.einsum("ocij,cn->onij", w, self.fold[:, :, 0, 0])
+        low_rank = torch.einsum("or,rnij->onij", self.mix.weight[:, :, 0, 0], self.basis.weight)
+        return torch.cat([w, folded + low_rank], dim=1)
+
+
+def widened_conv(conv: nn.Conv2d, extra_channels: int = 1, validity: bool = False, mode: str = "full",
+                 rank: int = 4) -> nn.Module:
+    """A copy of ``conv`` with ``extra_channels`` prior inputs (+1 validity input) appended.
+
+    Prior channels start at the mean of the existing (RGB) input weights, as in the SGDE paper;
+    the validity channel starts at zero. The original input weights and the bias are copied
+    unchanged, so with zero extra inputs the result equals the original convolution.
+    ``mode="factored"`` returns the equal-at-start, cheaper ``FactoredPriorConv`` (module docstring).
+    """
+    if mode not in STEM_MODES:
+        raise ValueError(f"stem mode must be one of {STEM_MODES}, got {mode!r}")
+    if mode == "factored":
+        return FactoredPriorConv(conv, extra_channels, validity, rank)
+    _check_conv(conv, extra_channels)
     n_new = extra_channels + int(validity)
     weight = conv.weight
     new = nn.Conv2d(
@@ -67,7 +138,7 @@ def widened_conv(conv: nn.Conv2d, extra_channels: int = 1, validity: bool = Fals
 
 
 def widen_first_conv(
-    module_or_conv: nn.Module, extra_channels: int = 1, validity: bool = False
+    module_or_conv: nn.Module, extra_channels: int = 1, validity: bool = False, mode: str = "full", rank: int = 4
 ) -> nn.Module:
     """Widen the first convolution of a backbone (in place) or a bare ``nn.Conv2d`` (returns a new one).
 
@@ -75,9 +146,9 @@ def widen_first_conv(
     so ``resnet = widen_first_conv(resnet18())`` takes RGB + prior inputs.
     """
     if isinstance(module_or_conv, nn.Conv2d):
-        return widened_conv(module_or_conv, extra_channels, validity)
+        return widened_conv(module_or_conv, extra_channels, validity, mode, rank)
     parent, attr, conv = find_first_conv(module_or_conv)
-    setattr(parent, attr, widened_conv(conv, extra_channels, validity))
+    setattr(parent, attr, widened_conv(conv, extra_channels, validity, mode, rank))
     return module_or_conv
 
 
@@ -88,10 +159,11 @@ class PriorChannelStem(nn.Module):
     encoded inside the graph (depth / max_depth, 0 = no prior) and never uses RGB statistics.
     """
 
-    def __init__(self, conv: nn.Conv2d, max_depth: float = 80.0, with_validity: bool = False) -> None:
+    def __init__(self, conv: nn.Conv2d, max_depth: float = 80.0, with_validity: bool = False,
+                 mode: str = "full", rank: int = 4) -> None:
         super().__init__()
         self.encoding = PriorEncoding(max_depth=max_depth, with_validity=with_validity)
-        self.conv = widened_conv(conv, extra_channels=1, validity=with_validity)
+        self.conv = widened_conv(conv, extra_channels=1, validity=with_validity, mode=mode, rank=rank)
 
     def forward(self, rgb: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
         """``rgb`` [B,3,H,W], ``prior`` [B,1,H,W] metres -> the convolution's output."""
