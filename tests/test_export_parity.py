@@ -97,3 +97,18 @@ def test_generated_frame_stands_in_when_the_renderer_is_missing(bev_spec, monkey
     assert all(torch.equal(a, b) for a, b in zip(inputs, again))  # deterministic
     prior = inputs[1]
     assert prior.shape == (2, 6, 32, 64) and 0.0 < (prior > 0).float().mean().item() < 0.4
+
+
+def test_r18_with_the_factored_stem_exports_with_parity(tmp_path):
+    torch.manual_seed(1)
+    from sgde_plugin.nn import DepthNet
+
+    net = DepthNet(stem="factored", validity=True)
+    with torch.no_grad():  # a trained-looking low-rank prior kernel, not the all-zero start
+        net.encoder.conv1.mix.weight.normal_(0.0, 0.05)
+    ckpt = tmp_path / "factored.pt"
+    torch.save({"state_dict": net.state_dict(), "config": {"stem": "factored", "validity": True}}, ckpt)
+    spec = build_r18(ckpt, image_size=(64, 96))
+    report = export_spec(spec, tmp_path / "factored.onnx", check=True)
+    assert all(r.ok for r in report["parity"])
+    assert max(r.max_abs_diff / r.output_range for r in report["parity"]) <= 1e-4
