@@ -73,10 +73,8 @@ class FactoredPriorConv(nn.Module):
         self.out_channels = conv.out_channels
         self.conv = copy.deepcopy(conv)
         factory = {"device": conv.weight.device, "dtype": conv.weight.dtype}
-        # prior_j enters every RGB input with gain 1/3: conv_rgb(rgb + p/3) = conv_rgb(rgb) + conv(p, mean W_rgb)
-        fold = torch.zeros(conv.in_channels, n_new, 1, 1, **factory)
-        fold[:, :extra_channels] = 1.0 / conv.in_channels
-        self.register_buffer("fold", fold)
+        # each prior enters every RGB input with gain 1/3: conv_rgb(rgb + p/3) = conv_rgb(rgb) + conv(p, mean W_rgb)
+        self.fold_gain = 1.0 / conv.in_channels
         self.basis = nn.Conv2d(n_new, rank, conv.kernel_size, conv.stride, conv.padding, conv.dilation,
                                bias=False, padding_mode=conv.padding_mode, **factory)
         self.mix = nn.Conv2d(rank, conv.out_channels, 1, bias=False, **factory)
@@ -85,13 +83,19 @@ class FactoredPriorConv(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """[B, C_rgb + extra, H, W] -> the first layer's output."""
         rgb, extra = x[:, : self.rgb_channels], x[:, self.rgb_channels:]
-        folded = rgb + nn.functional.conv2d(extra, self.fold)
-        return self.conv(folded) + self.mix(self.basis(extra))
+        priors = extra[:, : self.extra_channels]
+        if self.extra_channels > 1:
+            priors = priors.sum(dim=1, keepdim=True)
+        # a broadcast add, not a 1x1 convolution: the latter costs as much as conv1's forward on CPU
+        out = self.conv(rgb + priors * self.fold_gain)
+        return out.add_(self.mix(self.basis(extra)))  # in place: conv's backward does not need its output
 
     def full_weight(self) -> torch.Tensor:
         """The equivalent single-convolution kernel [out, C_rgb + extra, kh, kw] (for inspection)."""
         w = self.conv.weight
-        folded = torch.einsum("ocij,cn->onij", w, self.fold[:, :, 0, 0])
+        n_new = self.in_channels - self.rgb_channels
+        folded = torch.zeros(w.shape[0], n_new, *w.shape[2:], dtype=w.dtype, device=w.device)
+        folded[:, : self.extra_channels] = w.mean(dim=1, keepdim=True)
         low_rank = torch.einsum("or,rnij->onij", self.mix.weight[:, :, 0, 0], self.basis.weight)
         return torch.cat([w, folded + low_rank], dim=1)
 
