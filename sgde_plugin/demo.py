@@ -77,10 +77,9 @@ def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
     """RigSequence at network size from the demo's own frames, its ground truth and its cached priors."""
     import torch
 
-    from .benchmarks.train_effect import RigSequence, lidar_pattern
+    from .benchmarks.train_effect import RigSequence, lidar_pattern, overlap_masks
     from .cache import PriorCache
     from .cache.resample import resize_depth, resize_matrix, warp_image
-    from .stereo.evaluate import true_overlap
 
     h, w = size
     cache = PriorCache(cache_path)
@@ -96,11 +95,7 @@ def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
             images[k, i] = warp_image(img, resize_matrix(img.shape[:2], (h, w)), (h, w))
             depth[k, i] = resize_depth(rig_true.load_depth(fr.id, cam.name), (h, w))[0]
             prior[k, i] = cache.get(fr.id, cam.name, size=(h, w))[0]
-    overlap = np.zeros(depth.shape, bool)
-    for k in range(F):
-        for i in range(N):
-            for j in ((i - 1) % N, (i + 1) % N):
-                overlap[k, i] |= true_overlap(cams[i], depth[k, i], cams[j], depth[k, j])
+    overlap = np.stack([overlap_masks(depth[k], cams) for k in range(F)])
     supervision = np.where(
         np.stack([np.stack([lidar_pattern(depth[k, i], cams[i]) for i in range(N)]) for k in range(F)]), depth, 0
     ).astype(np.float32)

@@ -7,18 +7,17 @@ cameras), evaluated on held-out frames further down the street:
 - + input:           RGB + prior channel (same initial weights, first conv widened);
 - + input & L1:      as + input, plus lambda * L1(D, D_p) with lambda = 0.005.
 
-Defaults (about 15 minutes on two idle cores): 64x112 network input (frames rendered at 128x224,
-where the prior pipeline matches), 24 training frames and 6 held-out frames per seed, three seeds
-(a seed changes the world and the initial weights), 300 steps of one frame (six cameras) per arm,
+Defaults (about 13 minutes on two idle cores): 64x112 network input (frames rendered at 256x448,
+where the prior pipeline matches), 24 training frames and 12 held-out frames per seed, three seeds
+(a seed changes the world and the initial weights), 500 steps of one frame (six cameras) per arm,
 Adam lr 4e-4, LiDAR-like sparse supervision, evaluation on dense ground truth <= 80 m, and the
 prior arms with the optional validity channel. No pretrained weights (offline).
 
 Data enter through one function, `load_sequence`, returning a `RigSequence` (images, ground
 truth, LiDAR-like training depth, prior and its validity, per camera per frame, plus the cameras
-for Dep Con). Scenes come from `sgde_plugin.synth` when its renderer imports, else from a small
-box-and-plane street written here; priors come from the project's prior pipeline
-(`sgde_plugin.stereo`) when it imports, else from the ground truth restricted to the true overlap of
-adjacent cameras with stereo-like noise. The output says which was used.
+for Dep Con). Scenes come from `sgde_plugin.synth`; priors from the project's prior pipeline
+(`sgde_plugin.stereo`, SGBM with true extrinsics), or on request from the ground truth restricted
+to the true overlap of adjacent cameras with stereo-like noise. The output says which was used.
 """
 
 from __future__ import annotations
@@ -27,16 +26,22 @@ import copy
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..cameras import Camera, Pinhole
-from ..geometry import camera_mount, invert_transform
-from ..metrics import average_metrics, dep_con_terms, depth_metrics, warp_depth
+from ..cameras import Camera
+from ..geometry import invert_transform
+from ..metrics import average_metrics, dep_con_terms, depth_metrics
 from ..nn import DepthNet, PriorL1Loss
+from ..rig import Frame, Rig, ring_pairs
+from ..stereo.evaluate import true_overlap
+from ..stereo.pipeline import PriorBuilder, PriorConfig
+from ..synth.presets import preset_cameras
+from ..synth.render import render
+from ..synth.world import build_world
 
 MAX_DEPTH_EVAL = 80.0  # nuScenes evaluation cap
 LIDAR_POSITION = np.array([0.94, 0.0, 1.84])  # roof LiDAR of nuScenes, ego frame
@@ -58,170 +63,16 @@ class RigSequence:
     overlap: np.ndarray  # bool: pixel seen by an adjacent camera (true geometry)
     scene_source: str = ""
     prior_source: str = ""
-    notes: list[str] = field(default_factory=list)
 
 
 # --- cameras ------------------------------------------------------------------------------------
 
-def rig_cameras(width: int, height: int) -> tuple[list[Camera], str]:
-    """The nuScenes preset of `sgde_plugin.synth` resized to (width, height), or a generic 6-camera ring."""
-    try:
-        from ..synth.presets import preset_cameras
-    except ImportError:
-        cams = []
-        for i, yaw in enumerate((0.0, -55.0, -110.0, 180.0, 110.0, 55.0)):
-            pos = np.array([1.5 * math.cos(math.radians(yaw)) + 0.8, 0.5 * math.sin(math.radians(yaw)), 1.5])
-            f = width / 2 / math.tan(math.radians(33.0 if i != 3 else 50.0))
-            K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
-            cams.append(Camera(f"CAM{i}", Pinhole(width, height, K), camera_mount(math.radians(yaw), pos)))
-        return cams, "generic six-camera ring (sgde_plugin.synth.presets not importable)"
-    return [c.resized(width, height) for c in preset_cameras("nuscenes")], "sgde_plugin.synth nuscenes preset"
-
-
-def ring_pairs(cameras: list[Camera]) -> list[tuple[str, str]]:
-    """Adjacent pairs of a closed ring in list order."""
-    names = [c.name for c in cameras]
-    return [(names[i], names[(i + 1) % len(names)]) for i in range(len(names))]
-
-
-# --- fallback scene: a procedural street of planes and boxes -----------------------------------
-
-def _hash(ix: torch.Tensor, iy: torch.Tensor, salt: float = 0.0) -> torch.Tensor:
-    """Deterministic pseudo-random value in [0, 1) per integer cell."""
-    return torch.frac(torch.sin(ix * 12.9898 + iy * 78.233 + salt) * 43758.5453).abs()
-
-
-@dataclass
-class BoxStreet:
-    """A straight street: ground, two facade rows with varying heights, boxes for cars."""
-
-    box_lo: torch.Tensor  # [K,3]
-    box_hi: torch.Tensor  # [K,3]
-    box_colour: torch.Tensor  # [K,3]
-    segment_m: float
-    heights: dict[int, torch.Tensor]  # side (+1 left, -1 right) -> per-segment height
-    colours: dict[int, torch.Tensor]  # side -> per-segment RGB
-    facade_y: float = 9.0
-    x_range: tuple[float, float] = (-100.0, 1100.0)
-
-
-def build_box_street(seed: int) -> BoxStreet:
-    """Random street furniture: parked and moving-lane cars (boxes), facade heights and colours."""
-    g = torch.Generator().manual_seed(seed)
-    n_seg = 120
-    n_cars = 260
-    lanes = torch.tensor([-4.6, -1.75, 1.75, 4.6])
-    x = torch.rand(n_cars, generator=g, dtype=torch.float64) * 1000 - 50
-    y = lanes[torch.randint(0, 4, (n_cars,), generator=g)].double() + torch.randn(n_cars, generator=g).double() * 0.2
-    keep = ~((y - (-1.75)).abs() < 1.0) | (x < -10) | (x > 1000)  # leave the ego lane free
-    x, y = x[keep], y[keep]
-    size = torch.stack([4.0 + torch.rand(len(x), generator=g) * 1.2, 1.75 + torch.rand(len(x), generator=g) * 0.3,
-                        1.4 + torch.rand(len(x), generator=g) * 0.6], 1).double()
-    centre = torch.stack([x, y, size[:, 2] / 2 + 0.15], 1)
-    colour = torch.rand(len(x), 3, generator=g).double() * 0.8 + 0.1
-    heights = {s: 5.0 + torch.rand(n_seg, generator=g).double() * 16 for s in (1, -1)}
-    colours = {s: torch.rand(n_seg, 3, generator=g).double() * 0.5 + 0.3 for s in (1, -1)}
-    return BoxStreet(centre - size / 2, centre + size / 2, colour, 10.0, heights, colours)
-
-
-def _trace_street(world: BoxStreet, origin: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Range t (inf = sky) and RGB for world-frame rays [R,3] from one origin."""
-    r = dirs.shape[0]
-    inf = torch.full((r,), math.inf, dtype=torch.float64)
-    best_t, kind = inf.clone(), torch.zeros(r, dtype=torch.long)  # 0 sky, 1 ground, 2 facade, 3 box
-    normal = torch.zeros(r, 3, dtype=torch.float64)
-    albedo = torch.zeros(r, 3, dtype=torch.float64)
-
-    def take(t: torch.Tensor, k: int, n: torch.Tensor) -> torch.Tensor:
-        better = t < best_t
-        best_t[better] = t[better]
-        kind[better] = k
-        normal[better] = n[better]
-        return better
-
-    dz = dirs[:, 2]
-    t_g = torch.where(dz < -1e-9, -origin[2] / dz.clamp(max=-1e-9), inf)
-    take(t_g, 1, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(r, 3))
-    for side in (1, -1):
-        dy = dirs[:, 1] * side
-        t_f = torch.where(dy > 1e-9, (side * world.facade_y - origin[1]) / (dirs[:, 1] + 1e-300), inf)
-        p = origin + t_f.clamp(max=1e6)[:, None] * dirs
-        seg = ((p[:, 0] - world.x_range[0]) / world.segment_m).floor().long().clamp(0, len(world.heights[side]) - 1)
-        t_f = torch.where((p[:, 2] >= 0) & (p[:, 2] <= world.heights[side][seg]), t_f, inf)
-        take(t_f, 2 + (side < 0) * 10, torch.tensor([0.0, -side, 0.0], dtype=torch.float64).expand(r, 3))
-    # boxes near the origin only (slab test)
-    near = ((world.box_lo[:, 0] - origin[0]).abs() < 160)
-    lo, hi, col = world.box_lo[near], world.box_hi[near], world.box_colour[near]
-    inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-    t0 = (lo[None] - origin) * inv[:, None]
-    t1 = (hi[None] - origin) * inv[:, None]
-    tmin, tmax = torch.minimum(t0, t1), torch.maximum(t0, t1)
-    t_enter, axis = tmin.max(-1)
-    t_exit = tmax.min(-1).values
-    hit = (t_enter <= t_exit) & (t_enter > 1e-6)
-    t_box = torch.where(hit, t_enter, torch.full_like(t_enter, math.inf))
-    tb, kb = t_box.min(1) if t_box.shape[1] else (inf, torch.zeros(r, dtype=torch.long))
-    if t_box.shape[1]:
-        ax = axis.gather(1, kb[:, None])[:, 0]
-        nb = torch.zeros(r, 3, dtype=torch.float64)
-        nb[torch.arange(r), ax] = -torch.sign(dirs[torch.arange(r), ax])
-        better = take(tb, 3, nb)
-        albedo[better] = col[kb[better]]
-    p = origin + best_t.clamp(max=1e6)[:, None] * dirs
-    # ground: asphalt with lane dashes, lighter pavement beyond the kerb
-    g = kind == 1
-    cell = _hash(torch.floor(p[g, 0] * 2), torch.floor(p[g, 1] * 2))
-    base = 0.28 + 0.12 * cell
-    pave = p[g, 1].abs() > 6.0
-    base = torch.where(pave, 0.55 + 0.1 * cell * (torch.frac(p[g, 0]) > 0.06), base)
-    dash = (p[g, 1].abs() < 0.08) & (torch.remainder(p[g, 0], 6.0) < 3.0)
-    edge = ((p[g, 1].abs() - 5.9).abs() < 0.08)
-    base = torch.where(dash | edge, torch.full_like(base, 0.9), base)
-    albedo[g] = base[:, None] * torch.tensor([1.0, 1.0, 1.02], dtype=torch.float64)
-    for k, side in ((2, 1), (12, -1)):
-        f = kind == k
-        seg = ((p[f, 0] - world.x_range[0]) / world.segment_m).floor().long().clamp(0, len(world.heights[side]) - 1)
-        wall = world.colours[side][seg]
-        window = (torch.remainder(p[f, 0], 3.0) > 1.0) & (torch.remainder(p[f, 2], 3.2) > 1.0) & (p[f, 2] > 1.0)
-        albedo[f] = torch.where(window[:, None], wall * 0.3 + 0.05, wall * (0.9 + 0.1 * _hash(
-            torch.floor(p[f, 0] * 4), torch.floor(p[f, 2] * 4), 3.0))[:, None])
-    sun = torch.tensor([0.35, 0.45, 0.82], dtype=torch.float64)
-    sun = sun / sun.norm()
-    lit = albedo * (0.45 + 0.55 * (normal @ sun).clamp(min=0))[:, None]
-    sky = torch.stack([0.55 + 0.2 * (1 - dz.clamp(0, 1)), 0.7 + 0.1 * (1 - dz.clamp(0, 1)),
-                       torch.full_like(dz, 0.92)], 1)
-    rgb = torch.where((kind == 0)[:, None], sky, lit)
-    return best_t, rgb
-
-
-def render_box_street(world: BoxStreet, camera: Camera, ego_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """RGB uint8 [H,W,3] and pinhole depth (z) float32 [H,W] of the fallback street, 0 = sky."""
-    rays, ok = camera.intrinsics.ray_grid()
-    T = torch.as_tensor(ego_to_world @ camera.sensor_to_ego)
-    dirs = rays.reshape(-1, 3) @ T[:3, :3].T
-    t, rgb = _trace_street(world, T[:3, 3], dirs)
-    depth = t * rays.reshape(-1, 3)[:, 2] if not camera.intrinsics.depth_is_range else t
-    depth = torch.where(torch.isfinite(depth) & ok.reshape(-1), depth, torch.zeros_like(depth))
-    h, w = camera.height, camera.width
-    img = (rgb.reshape(h, w, 3).clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-    return img, depth.reshape(h, w).numpy().astype(np.float32)
+def rig_cameras(width: int, height: int) -> list[Camera]:
+    """The nuScenes preset of `sgde_plugin.synth` resized to (width, height)."""
+    return [c.resized(width, height) for c in preset_cameras("nuscenes")]
 
 
 # --- priors and LiDAR-like supervision ----------------------------------------------------------
-
-def true_overlap(depth: np.ndarray, cameras: list[Camera], rel_tol: float = 0.03) -> np.ndarray:
-    """Per camera, pixels whose surface an adjacent camera also sees (warp the neighbour's ground truth
-    into the camera; keep pixels where it lands and agrees, i.e. not occluded). [N,H,W] bool."""
-    n = len(cameras)
-    out = np.zeros(depth.shape, dtype=bool)
-    for i, cam in enumerate(cameras):
-        for j in ((i - 1) % n, (i + 1) % n):
-            nb = cameras[j]
-            rel = invert_transform(cam.sensor_to_ego) @ nb.sensor_to_ego
-            warped = warp_depth(depth[j], nb, cam, rel)
-            out[i] |= (warped > 0) & (depth[i] > 0) & (np.abs(warped - depth[i]) <= rel_tol * depth[i] + 0.05)
-    return out
-
 
 def noisy_overlap_prior(
     depth: np.ndarray, overlap: np.ndarray, rng: np.random.Generator,
@@ -258,45 +109,32 @@ def lidar_pattern(depth: np.ndarray, camera: Camera) -> np.ndarray:
     return hit.reshape(depth.shape)
 
 
+def thin_hits(hits: np.ndarray, density: float, rng: np.random.Generator) -> np.ndarray:
+    """Keep a random subset of the LiDAR pixels so that about ``density`` of all pixels remain."""
+    keep = min(1.0, density / max(float(hits.mean()), 1e-12))
+    return hits & (rng.random(hits.shape) < keep)
+
+
 # --- the data entry point -----------------------------------------------------------------------
 
 Shot = Callable[[Camera, int], tuple[np.ndarray, np.ndarray]]
 
 
-def _renderer(seed: int, frame_step_s: float) -> tuple[Shot, str, str]:
-    """(camera, frame id) -> (RGB, depth): the project's renderer when it imports, else the box street."""
-    try:
-        from ..synth.render import render
-        from ..synth.world import build_world
-    except ImportError as exc:
-        street = build_box_street(seed)
-
-        def shot(cam: Camera, k: int) -> tuple[np.ndarray, np.ndarray]:
-            pose = np.eye(4)
-            pose[0, 3] = 6.0 * k * frame_step_s  # 6 m/s along the street, in the right-hand lane
-            pose[1, 3] = -1.75
-            return render_box_street(street, cam, pose)
-
-        return shot, "fallback box-and-plane street rendered inside this benchmark", f"no renderer ({exc})"
+def _renderer(seed: int, frame_step_s: float) -> Shot:
+    """(camera, frame id) -> (RGB, depth) of the `sgde_plugin.synth` street of world ``seed``."""
     world = build_world(seed)
 
     def shot(cam: Camera, k: int) -> tuple[np.ndarray, np.ndarray]:
         t = k * frame_step_s
         return render(world, cam, world.ego_pose(t), t)
 
-    return shot, "sgde_plugin.synth procedural street (the project's renderer)", ""
+    return shot
 
 
-def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray | None:
-    """Priors [F,N,H,W] from the project's prior pipeline (SGBM on rectified adjacent pairs), or None."""
-    try:
-        from ..rig import Frame, Rig
-        from ..rig import ring_pairs as rig_ring_pairs
-        from ..stereo.pipeline import PriorBuilder, PriorConfig
-    except ImportError:
-        return None
+def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray:
+    """Priors [F,N,H,W] from the project's prior pipeline (SGBM on rectified adjacent pairs)."""
     names = tuple(c.name for c in cameras)
-    rig = Rig(tuple(cameras), rig_ring_pairs(names), (Frame("0", 0),), names)
+    rig = Rig(tuple(cameras), ring_pairs(names), (Frame("0", 0),), names)
     builder = PriorBuilder(rig, PriorConfig(scale=1.0))
     out = np.zeros(images.shape[:-1], np.float32)
     for k in range(images.shape[0]):
@@ -306,67 +144,69 @@ def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray | 
     return out
 
 
-def _overlap(depth: np.ndarray, cameras: list[Camera]) -> np.ndarray:
-    """True overlap per camera [N,H,W]: the prior evaluation's definition when available."""
-    try:
-        from ..stereo.evaluate import true_overlap as pair_overlap
-    except ImportError:
-        return true_overlap(depth, cameras)
+def overlap_masks(depth: np.ndarray, cameras: list[Camera]) -> np.ndarray:
+    """True overlap per camera [N,H,W]: pixels an adjacent camera sees unoccluded (the prior
+    evaluation's definition)."""
     n = len(cameras)
     out = np.zeros(depth.shape, bool)
     for i in range(n):
         for j in ((i - 1) % n, (i + 1) % n):
-            out[i] |= pair_overlap(cameras[i], depth[i], cameras[j], depth[j])
+            out[i] |= true_overlap(cameras[i], depth[i], cameras[j], depth[j])
     return out
 
 
 def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, frame_step_s: float = 0.5,
-                  prior: str = "auto") -> RigSequence:
+                  prior: str = "pipeline", render_factor: int = 4,
+                  supervision_density: float | None = None) -> RigSequence:
     """Frames `frame_ids` (time = id * frame_step_s) of a six-camera street at network size (H, W).
 
-    Frames are rendered at twice the network size; priors come from the project's prior pipeline
-    run on those renders (``prior="auto"`` when it imports, or ``"pipeline"``), else (or with
-    ``prior="overlap-noise"``) from the ground truth restricted to the true overlap with stereo-like
+    Frames are rendered at ``render_factor`` times the network size (as a real cache is built at
+    the camera's resolution and resampled to the network's); priors come from the project's prior
+    pipeline run on those renders (``prior="pipeline"``, the default), or with
+    ``prior="overlap-noise"`` from the ground truth restricted to the true overlap with stereo-like
     noise. Images are area-downsampled, depths (truth, prior) min-pooled, to the network size.
+    ``supervision_density`` thins the LiDAR-like training depth to that fraction of pixels.
     """
     from ..cache.resample import resize_depth, resize_matrix, warp_image
 
     h, w = size
-    render_cams, rig_note = rig_cameras(2 * w, 2 * h)
+    rh, rw = render_factor * h, render_factor * w
+    if prior not in ("pipeline", "overlap-noise"):
+        raise ValueError(f"prior must be 'pipeline' or 'overlap-noise', got {prior!r}")
+    render_cams = rig_cameras(rw, rh)
     cameras = [c.resized(w, h) for c in render_cams]
-    shot, scene, scene_note = _renderer(seed, frame_step_s)
-    notes = [rig_note] + ([scene_note] if scene_note else [])
+    shot = _renderer(seed, frame_step_s)
     n, frames = len(cameras), len(frame_ids)
-    big_images = np.zeros((frames, n, 2 * h, 2 * w, 3), np.uint8)
+    big_images = np.zeros((frames, n, rh, rw, 3), np.uint8)
     images = np.zeros((frames, n, h, w, 3), np.uint8)
     depth = np.zeros((frames, n, h, w), np.float32)
-    shrink = resize_matrix((2 * h, 2 * w), (h, w))
+    shrink = resize_matrix((rh, rw), (h, w))
     for k, fid in enumerate(frame_ids):
         for i, cam in enumerate(render_cams):
             big_images[k, i], big_depth = shot(cam, fid)
             images[k, i] = warp_image(big_images[k, i], shrink, (h, w))
             depth[k, i] = resize_depth(big_depth, (h, w))[0]
-    overlap = np.stack([_overlap(depth[k], cameras) for k in range(frames)])
-    big_prior = _pipeline_priors(render_cams, big_images) if prior in ("auto", "pipeline") else None
-    if big_prior is None and prior == "pipeline":
-        raise RuntimeError("the prior pipeline (sgde_plugin.stereo) is not available")
-    if big_prior is not None:
+    overlap = np.stack([overlap_masks(depth[k], cameras) for k in range(frames)])
+    if prior == "pipeline":
+        big_prior = _pipeline_priors(render_cams, big_images)
         prior_map = np.stack([np.stack([resize_depth(big_prior[k, i], (h, w))[0] for i in range(n)])
                               for k in range(frames)])
         prior_map[prior_map > MAX_DEPTH_EVAL] = 0
         valid = prior_map > 0
         prior_source = (f"prior pipeline: sgde_plugin.stereo PriorBuilder (SGBM, true extrinsics) on "
-                        f"{2 * w}x{2 * h} renders, min-pooled to {w}x{h}")
+                        f"{rw}x{rh} renders, min-pooled to {w}x{h}")
     else:
         prior_map, valid = noisy_overlap_prior(depth, overlap, np.random.default_rng(seed))
-        prior_source = ("fallback: ground truth restricted to the true overlap of adjacent cameras, with "
+        prior_source = ("ground truth restricted to the true overlap of adjacent cameras, with "
                         "stereo-like noise (sigma_z = z^2 * 0.5 px / (633 px * 0.6 m), 3% outliers, 15% holes)")
-    supervision = np.stack([np.stack([np.where(lidar_pattern(depth[k, i], cameras[i]), depth[k, i], 0.0)
-                                      for i in range(n)]) for k in range(frames)]).astype(np.float32)
+    hits = np.stack([np.stack([lidar_pattern(depth[k, i], cameras[i]) for i in range(n)]) for k in range(frames)])
+    if supervision_density is not None:
+        hits = thin_hits(hits, supervision_density, np.random.default_rng(seed + 7919))
+    supervision = np.where(hits, depth, 0.0).astype(np.float32)
     return RigSequence(
-        cameras=cameras, pairs=ring_pairs(cameras), images=images, depth=depth, supervision=supervision,
-        prior=prior_map.astype(np.float32), valid=valid, overlap=overlap, scene_source=scene,
-        prior_source=prior_source, notes=notes,
+        cameras=cameras, pairs=list(ring_pairs([c.name for c in cameras])), images=images, depth=depth,
+        supervision=supervision, prior=prior_map.astype(np.float32), valid=valid, overlap=overlap,
+        scene_source="sgde_plugin.synth procedural street (nuscenes preset)", prior_source=prior_source,
     )
 
 
@@ -416,9 +256,10 @@ def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: i
     return time.perf_counter() - t0
 
 
-def evaluate(net: DepthNet, seq: RigSequence, frames: list[int]) -> dict[str, float]:
+def evaluate(net: DepthNet, seq: RigSequence, frames: list[int], paste_prior: bool = False) -> dict[str, float]:
     """Per-image depth metrics (dense ground truth <= 80 m), Abs Rel inside / outside the overlap,
-    and Dep Con pooled over all adjacent pairs and frames."""
+    and Dep Con pooled over all adjacent pairs and frames. ``paste_prior`` replaces the prediction by
+    the prior wherever the prior is valid (the most a purely local use of the prior can give)."""
     net.eval()
     n = len(seq.cameras)
     rows, inside, outside = [], [], []
@@ -428,6 +269,8 @@ def evaluate(net: DepthNet, seq: RigSequence, frames: list[int]) -> dict[str, fl
             rgb, _, prior, valid = _tensors(seq, [k])
             pred = net.predict(rgb, prior if net.use_prior else None, valid if net.use_prior else None)
             pred = pred[:, 0].numpy().astype(np.float64)
+            if paste_prior:
+                pred = np.where(seq.valid[k], seq.prior[k], pred)
             gt = seq.depth[k]
             for i in range(n):
                 rows.append(depth_metrics(pred[i], gt[i], max_depth=MAX_DEPTH_EVAL))
@@ -458,12 +301,15 @@ ARMS = ("baseline", "+ input", "+ input & L1")
 
 
 def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test: int, validity: bool,
-             lr: float, log: Callable[[str], None]) -> tuple[dict[str, dict], RigSequence, list[int]]:
+             lr: float, log: Callable[[str], None], render_factor: int = 4,
+             supervision_density: float | None = None,
+             stem: str = "full") -> tuple[dict[str, dict], RigSequence, list[int]]:
     """One world and one initialisation (both from ``seed``): train and evaluate the three arms."""
     gap = 6  # held-out frames come after a gap further down the street (not rendered)
     frame_ids = list(range(n_train)) + list(range(n_train + gap, n_train + gap + n_test))
     t0 = time.perf_counter()
-    seq = load_sequence(frame_ids, size, seed=seed)
+    seq = load_sequence(frame_ids, size, seed=seed, render_factor=render_factor,
+                        supervision_density=supervision_density)
     train_idx, test_idx = list(range(n_train)), list(range(n_train, n_train + n_test))
     log(f"seed {seed} data: {len(frame_ids)} frames x {len(seq.cameras)} cameras at {size} "
         f"in {time.perf_counter() - t0:.0f} s")
@@ -473,8 +319,8 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0, scales=(0, 1, 2, 3))
     nets = {
         "baseline": copy.deepcopy(init),
-        "+ input": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL),
-        "+ input & L1": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL),
+        "+ input": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem),
+        "+ input & L1": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem),
     }
     weights = {"baseline": None, "+ input": None, "+ input & L1": 0.005}
     results: dict[str, dict] = {}
@@ -484,6 +330,8 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
         res = evaluate(nets[name], seq, test_idx)
         res["train_s"] = round(train_s, 1)
         res["prior_abs_rel"] = prior_quality["abs_rel"]
+        if name == "baseline":
+            res["pasted_abs_rel"] = evaluate(nets[name], seq, test_idx, paste_prior=True)["abs_rel"]
         results[name] = res
         log(f"seed {seed} {name}: abs_rel {res['abs_rel']:.4f} dep_con {res['dep_con']:.4f} ({train_s:.0f} s)")
     return results, seq, test_idx
@@ -491,18 +339,20 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
 
 def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | None = None,
         train_frames: int | None = None, test_frames: int | None = None, seeds: tuple[int, ...] | None = None,
-        validity: bool = True, lr: float = 4e-4, log: Callable[[str], None] | None = None) -> dict:
+        validity: bool = True, lr: float = 4e-4, log: Callable[[str], None] | None = None,
+        render_factor: int = 4, supervision_density: float | None = None, stem: str = "full") -> dict:
     """Run the three arms for each seed and return per-seed and mean figures (see module docstring)."""
     log = log or (lambda _msg: None)
     size = size or ((48, 80) if fast else (64, 112))
-    steps = steps or (30 if fast else 300)
+    steps = steps or (30 if fast else 500)
     n_train = train_frames or (6 if fast else 24)
-    n_test = test_frames or (2 if fast else 6)
+    n_test = test_frames or (2 if fast else 12)
     seeds = tuple(seeds) if seeds is not None else ((0,) if fast else (0, 1, 2))
     t0, cpu0 = time.perf_counter(), time.process_time()
     per_seed, seq, test_idx = {}, None, []
     for seed in seeds:
-        per_seed[seed], seq, test_idx = run_seed(seed, size, steps, n_train, n_test, validity, lr, log)
+        per_seed[seed], seq, test_idx = run_seed(seed, size, steps, n_train, n_test, validity, lr, log,
+                                                 render_factor, supervision_density, stem)
     mean = {arm: {m: float(np.mean([per_seed[s][arm][m] for s in seeds])) for m in per_seed[seeds[0]][arm]}
             for arm in ARMS}
     std = {arm: {m: float(np.std([per_seed[s][arm][m] for s in seeds])) for m in ("abs_rel", "dep_con")}
@@ -517,7 +367,6 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
     return {
         "scene": seq.scene_source,
         "prior": seq.prior_source,
-        "notes": seq.notes,
         "cameras": len(seq.cameras),
         "size_hw": list(size),
         "train_frames": n_train,
@@ -527,7 +376,12 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
         "batch": len(seq.cameras),
         "lr": lr,
         "validity_channel": validity,
+        "stem": stem,
         "supervision": "LiDAR-like (32 beams from the roof, <= 70 m), evaluation on dense ground truth <= 80 m",
+        "supervision_density": supervision_density,
+        "render_factor": render_factor,
+        "prior_pasted_note": "baseline.pasted_abs_rel: the baseline's prediction with the prior pasted in wherever "
+                             "it is valid, i.e. what a purely local use of the prior can give",
         "init": "random (no pretrained weights available offline); per seed identical initial weights and data "
                 "order for the three arms; a seed also changes the world",
         "overlap_fraction_test": round(float(seq.overlap[test_idx].mean()), 4),
