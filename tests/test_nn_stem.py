@@ -108,3 +108,24 @@ def test_factored_stem_in_resnet18_zero_prior():
     with torch.no_grad():
         diff = (wide(torch.cat([x, torch.zeros(2, 2, 64, 96)], 1)) - ref(x)).abs().max().item()
     assert diff <= 1e-6
+
+
+def test_lowrank_stem_starts_at_the_best_rank_r_mean_kernel():
+    torch.manual_seed(0)
+    conv = nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False)
+    mean = conv.weight.mean(dim=1).reshape(64, -1)
+    sv = torch.linalg.svdvals(mean)
+    for rank in (4, 49):
+        low = widen_first_conv(conv, validity=True, mode="lowrank", rank=rank)
+        w = low.full_weight()
+        assert torch.equal(w[:, :3], conv.weight)
+        assert torch.count_nonzero(w[:, 4]) == 0  # validity starts at zero
+        err = torch.linalg.matrix_norm(w[:, 3].reshape(64, -1) - mean).item()
+        # Eckart-Young: the error of the best rank-r approximation is the norm of the dropped singular values
+        assert err == pytest.approx(sv[rank:].norm().item(), abs=1e-5)
+    x = torch.rand(2, 5, 32, 48)
+    full = widen_first_conv(conv, validity=True)
+    with torch.no_grad():
+        assert (low(x) - full(x)).abs().max().item() <= 1e-5  # rank 49 = the kernel's full rank: the paper's start
+        x[:, 3:] = 0
+        assert torch.equal(low(x), conv(x[:, :3]))

@@ -1,5 +1,5 @@
 """`sgde bench stem`: cost of the prior channel on ResNet-18 at 384x640, for the paper's full widening
-of conv1 and the factored stem (``sgde_plugin.nn.stem``).
+of conv1 and the factored and low-rank stems (``sgde_plugin.nn.stem``).
 
 FLOPs are counted with ``torch.utils.flop_counter.FlopCounterMode`` (convolutions and matrix
 products; 1 multiply-add = 2 FLOPs) and checked against the analytic count of the widened first
@@ -47,12 +47,14 @@ def _time_step(model: torch.nn.Module, x: torch.Tensor) -> float:
 
 
 def elementwise_flops(batch: int, height: int, width: int, mode: str, out_channels: int = 64) -> int:
-    """FLOPs the counter does not see: the prior encoding (~4 per pixel) and, for the factored stem,
-    the fold's add into three RGB channels and the add of the low-rank term to conv1's output."""
+    """FLOPs the counter does not see: the prior encoding (~4 per pixel); for the factored stem the
+    fold's multiply-add into three RGB channels; for both cheap stems the add of the low-rank term to
+    conv1's output."""
     flops = 4 * batch * height * width
     if mode == "factored":
-        h_out, w_out = (height + 1) // 2, (width + 1) // 2
-        flops += 3 * batch * height * width + batch * out_channels * h_out * w_out
+        flops += 2 * 3 * batch * height * width
+    if mode in ("factored", "lowrank"):
+        flops += batch * out_channels * ((height + 1) // 2) * ((width + 1) // 2)
     return flops
 
 
@@ -64,7 +66,8 @@ def run(fast: bool = False, height: int = 384, width: int = 640, repeats: int | 
     torch.manual_seed(0)
     base = torchvision.models.resnet18(weights=None)
     wide = {"full": widen_first_conv(copy.deepcopy(base)),
-            "factored": widen_first_conv(copy.deepcopy(base), mode="factored", rank=rank)}
+            "factored": widen_first_conv(copy.deepcopy(base), mode="factored", rank=rank),
+            "lowrank": widen_first_conv(copy.deepcopy(base), mode="lowrank", rank=rank)}
     x3 = torch.rand(batch, 3, height, width)
     encode = PriorEncoding(80.0)
     prior = torch.rand(batch, 1, height, width) * 80.0
@@ -87,7 +90,7 @@ def run(fast: bool = False, height: int = 384, width: int = 640, repeats: int | 
                         "extra_pct_of_r18": round(100.0 * extra / flops_base, 3),
                         "extra_pct_of_depthnet": round(100.0 * extra_net / flops_net_base, 3)}
 
-    models = {"r18": (base, x3), "full": (wide["full"], x4), "factored": (wide["factored"], x4)}
+    models = {"r18": (base, x3), **{mode: (model, x4) for mode, model in wide.items()}}
     for m, _ in models.values():
         m.train()
     for _ in range(2):  # warm-up
@@ -107,8 +110,8 @@ def run(fast: bool = False, height: int = 384, width: int = 640, repeats: int | 
         result[mode]["fwd_bwd_ratio_of_medians"] = round(med[mode] / med["r18"], 4)
         result[mode]["meets_targets"] = bool(result[mode]["extra_pct_of_r18"] <= TARGET_FLOPS_PCT
                                              and result[mode]["fwd_bwd_ratio"] <= TARGET_RATIO)
-    result["timing"] = (f"{repeats} rounds of forward+backward steps (r18, full, factored) after 2 warm-ups, train "
-                        "mode; ratio = median over rounds of the per-round ratio")
+    result["timing"] = (f"{repeats} rounds of forward+backward steps (r18, full, factored, lowrank) after 2 "
+                        "warm-ups, train mode; ratio = median over rounds of the per-round ratio")
     result["targets"] = {"extra_pct_of_r18": TARGET_FLOPS_PCT, "fwd_bwd_ratio": TARGET_RATIO}
     result["load_average"] = round(os.getloadavg()[0], 2)
     return result

@@ -1,6 +1,6 @@
 """Prior-channel stem: widen the first convolution of a backbone from RGB to RGB + prior (+ validity).
 
-Two forms, equal at initialisation:
+Three forms:
 
 - ``"full"`` (the SGDE paper): one convolution over RGB + prior (+ validity); the prior's kernel starts
   at the mean of the RGB kernels. On ResNet's 7x7/2 conv1 each extra input adds a third of conv1,
@@ -12,6 +12,12 @@ Two forms, equal at initialisation:
   ResNet-18's FLOPs; the prior's kernel is restricted to mean(W_rgb) plus a rank-4 term. The fold is
   fixed on purpose: a learned gain would make conv1 compute its input gradient (a full conv1 more
   in every backward pass).
+- ``"lowrank"``: ``conv_rgb(rgb) + U(B(prior, validity))`` with ``U B`` starting at the best rank-``rank``
+  approximation (SVD) of the mean-of-RGB kernel: the prior's kernel is its own (no tie to the RGB
+  kernels) but of rank ``rank``, and equals the paper's start only up to that approximation. Same cost
+  as ``"factored"``.
+
+All three compute exactly the original convolution when the prior (and validity) inputs are zero.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ def find_first_conv(module: nn.Module, in_channels: int | None = 3) -> tuple[nn.
     raise ValueError(f"no nn.Conv2d{want} found in {type(module).__name__}")
 
 
-STEM_MODES = ("full", "factored")
+STEM_MODES = ("full", "factored", "lowrank")
 
 
 def _check_conv(conv: nn.Module, extra_channels: int) -> None:
@@ -57,11 +63,13 @@ def _check_conv(conv: nn.Module, extra_channels: int) -> None:
 class FactoredPriorConv(nn.Module):
     """A first convolution over RGB + prior (+ validity) at almost the cost of the RGB one.
 
-    ``forward(x)`` takes the same [B, 3 + extra (+1), H, W] input as the widened ``nn.Conv2d`` and,
-    as built by ``widened_conv(..., mode="factored")``, returns the same output at initialisation.
+    ``forward(x)`` takes the same [B, 3 + extra (+1), H, W] input as the widened ``nn.Conv2d``. With
+    ``tied`` (mode ``"factored"``) it returns the same output as the paper's widened convolution at
+    initialisation; without (mode ``"lowrank"``) the same up to a rank-``rank`` approximation.
     """
 
-    def __init__(self, conv: nn.Conv2d, extra_channels: int = 1, validity: bool = False, rank: int = 4) -> None:
+    def __init__(self, conv: nn.Conv2d, extra_channels: int = 1, validity: bool = False, rank: int = 4,
+                 tied: bool = True) -> None:
         super().__init__()
         _check_conv(conv, extra_channels)
         if rank < 1:
@@ -73,21 +81,37 @@ class FactoredPriorConv(nn.Module):
         self.out_channels = conv.out_channels
         self.conv = copy.deepcopy(conv)
         factory = {"device": conv.weight.device, "dtype": conv.weight.dtype}
-        # each prior enters every RGB input with gain 1/3: conv_rgb(rgb + p/3) = conv_rgb(rgb) + conv(p, mean W_rgb)
-        self.fold_gain = 1.0 / conv.in_channels
+        # tied: each prior enters every RGB input with gain 1/3,
+        # conv_rgb(rgb + p/3) = conv_rgb(rgb) + conv(p, mean W_rgb)
+        self.fold_gain = 1.0 / conv.in_channels if tied else 0.0
         self.basis = nn.Conv2d(n_new, rank, conv.kernel_size, conv.stride, conv.padding, conv.dilation,
                                bias=False, padding_mode=conv.padding_mode, **factory)
         self.mix = nn.Conv2d(rank, conv.out_channels, 1, bias=False, **factory)
-        nn.init.zeros_(self.mix.weight)
+        if tied:
+            nn.init.zeros_(self.mix.weight)
+        else:
+            with torch.no_grad():
+                mean = conv.weight.mean(dim=1).reshape(conv.out_channels, -1).double()
+                u, sv, vh = torch.linalg.svd(mean, full_matrices=False)
+                k = min(rank, sv.numel())
+                root = sv[:k].sqrt()
+                basis = torch.zeros_like(self.basis.weight, dtype=torch.float64)
+                basis[:k, :extra_channels] = (root[:, None] * vh[:k]).reshape(k, 1, *conv.kernel_size)
+                mix = torch.zeros_like(self.mix.weight, dtype=torch.float64)
+                mix[:, :k, 0, 0] = u[:, :k] * root
+                self.basis.weight.copy_(basis)
+                self.mix.weight.copy_(mix)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """[B, C_rgb + extra, H, W] -> the first layer's output."""
         rgb, extra = x[:, : self.rgb_channels], x[:, self.rgb_channels:]
-        priors = extra[:, : self.extra_channels]
-        if self.extra_channels > 1:
-            priors = priors.sum(dim=1, keepdim=True)
-        # a broadcast add, not a 1x1 convolution: the latter costs as much as conv1's forward on CPU
-        out = self.conv(rgb + priors * self.fold_gain)
+        if self.fold_gain:
+            priors = extra[:, : self.extra_channels]
+            if self.extra_channels > 1:
+                priors = priors.sum(dim=1, keepdim=True)
+            # a broadcast add, not a 1x1 convolution: the latter costs as much as conv1's forward on CPU
+            rgb = rgb + priors * self.fold_gain
+        out = self.conv(rgb)
         return out.add_(self.mix(self.basis(extra)))  # in place: conv's backward does not need its output
 
     def full_weight(self) -> torch.Tensor:
@@ -95,7 +119,8 @@ class FactoredPriorConv(nn.Module):
         w = self.conv.weight
         n_new = self.in_channels - self.rgb_channels
         folded = torch.zeros(w.shape[0], n_new, *w.shape[2:], dtype=w.dtype, device=w.device)
-        folded[:, : self.extra_channels] = w.mean(dim=1, keepdim=True)
+        if self.fold_gain:
+            folded[:, : self.extra_channels] = w.mean(dim=1, keepdim=True)
         low_rank = torch.einsum("or,rnij->onij", self.mix.weight[:, :, 0, 0], self.basis.weight)
         return torch.cat([w, folded + low_rank], dim=1)
 
@@ -107,12 +132,12 @@ def widened_conv(conv: nn.Conv2d, extra_channels: int = 1, validity: bool = Fals
     Prior channels start at the mean of the existing (RGB) input weights, as in the SGDE paper;
     the validity channel starts at zero. The original input weights and the bias are copied
     unchanged, so with zero extra inputs the result equals the original convolution.
-    ``mode="factored"`` returns the equal-at-start, cheaper ``FactoredPriorConv`` (module docstring).
+    ``mode="factored"`` / ``"lowrank"`` return the cheaper ``FactoredPriorConv`` (module docstring).
     """
     if mode not in STEM_MODES:
         raise ValueError(f"stem mode must be one of {STEM_MODES}, got {mode!r}")
-    if mode == "factored":
-        return FactoredPriorConv(conv, extra_channels, validity, rank)
+    if mode in ("factored", "lowrank"):
+        return FactoredPriorConv(conv, extra_channels, validity, rank, tied=mode == "factored")
     _check_conv(conv, extra_channels)
     n_new = extra_channels + int(validity)
     weight = conv.weight
