@@ -8,12 +8,18 @@ HELP = "synthesise a rig, calibrate it, build and evaluate priors, train, export
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of `sgde demo`."""
+    """Arguments of `sgde demo` (defaults from `DemoSettings`)."""
+    from ..demo import DemoSettings
+
+    d = DemoSettings()
     parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
-    parser.add_argument("--frames", type=int, default=7, help="frames of the synthetic sequence (default 7)")
-    parser.add_argument("--scale", type=float, default=0.5, help="image scale of the 1600x900 rig (default 0.5)")
-    parser.add_argument("--steps", type=int, default=80, help="training steps per network arm (default 80)")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    parser.add_argument("--frames", type=int, default=d.frames,
+                        help=f"frames of the synthetic sequence (default {d.frames})")
+    parser.add_argument("--scale", type=float, default=d.scale,
+                        help=f"image scale of the 1600x900 rig (default {d.scale})")
+    parser.add_argument("--steps", type=int, default=d.train_steps,
+                        help=f"training steps per network arm (default {d.train_steps})")
+    parser.add_argument("--seed", type=int, default=d.seed, help=f"scene seed (default {d.seed})")
 
 
 def run(args: argparse.Namespace) -> int:
