@@ -59,22 +59,24 @@ def elementwise_flops(batch: int, height: int, width: int, mode: str, out_channe
 
 
 def run(fast: bool = False, height: int = 384, width: int = 640, repeats: int | None = None,
-        batch: int = 1, rank: int = 4) -> dict:
-    """FLOPs and interleaved forward + backward timing of R18 without / with the prior channel,
-    for the paper's full widening and the factored stem."""
+        batch: int = 1) -> dict:
+    """FLOPs and interleaved forward + backward timing of R18 without / with the prior channel, for
+    the paper's full widening and the factored and low-rank stems (at their default rank, as
+    ``DepthNet(stem=...)`` builds them)."""
     repeats = repeats or (3 if fast else 31)
     torch.manual_seed(0)
     base = torchvision.models.resnet18(weights=None)
     wide = {"full": widen_first_conv(copy.deepcopy(base)),
-            "factored": widen_first_conv(copy.deepcopy(base), mode="factored", rank=rank),
-            "lowrank": widen_first_conv(copy.deepcopy(base), mode="lowrank", rank=rank)}
+            "factored": widen_first_conv(copy.deepcopy(base), mode="factored"),
+            "lowrank": widen_first_conv(copy.deepcopy(base), mode="lowrank")}
     x3 = torch.rand(batch, 3, height, width)
     encode = PriorEncoding(80.0)
     prior = torch.rand(batch, 1, height, width) * 80.0
     x4 = torch.cat([x3, encode(prior)], dim=1)
 
     flops_base = count_flops(base, x3)
-    result: dict = {"input_hw": [height, width], "batch": batch, "factored_rank": rank,
+    result: dict = {"input_hw": [height, width], "batch": batch,
+                    "factored_rank": wide["factored"].conv1.mix.in_channels,
                     "r18_gflops": round(flops_base / 1e9, 4),
                     "full_extra_analytic_gflops": round(conv1_extra_flops(height, width) * batch / 1e9, 4)}
     # the full reference depth net (encoder + monodepth2 decoder), for context

@@ -124,7 +124,8 @@ class DepthNet(nn.Module):
     0 = none; ``valid`` optional bool mask applied to the prior. Returns a dict with
     ``("disp", s)`` (sigmoid output) and ``("depth", s)`` (metres in [min_depth, max_depth]) for
     each scale s (resolution H/2^s). ``use_prior=False`` is the plain 3-channel baseline.
-    ``stem`` is the prior-channel stem's form, ``"full"`` (the paper) or ``"factored"`` (see ``nn.stem``).
+    ``stem`` is the prior-channel stem's form: ``"full"`` (the paper), ``"factored"`` or ``"lowrank"``
+    (cheaper; see ``nn.stem``).
     """
 
     def __init__(
