@@ -49,7 +49,7 @@ class PriorFeed:
 
     @contextmanager
     def given(self, prior: Tensor | None) -> Iterator[PriorFeed]:
-        """Within the block, the k-th call gets frame k of ``prior`` ([B, S, N, H, W] or [B, N, H, W]); None: no prior."""
+        """In the block the k-th call gets frame k of ``prior`` ([B, S, N, H, W] or [B, N, H, W]); None: no prior."""
         if prior is None:
             yield self
             return

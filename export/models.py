@@ -310,17 +310,38 @@ def build_r18(checkpoint: str | Path | None = None, image_size: tuple[int, int] 
                       {"image_size": (h, w)})
 
 
+def _config_from_state(state: dict[str, Tensor] | None) -> dict[str, Any]:
+    """PriorDepthNet sizes read off a BEVDepth-style DepthNet state dict (empty when they cannot be)."""
+    if not state or "reduce_conv.0.weight" not in state or "context_conv.weight" not in state:
+        return {}
+    deformable = "depth_conv.4.conv_offset.weight" in state
+    last = state.get(f"depth_conv.{5 if deformable else 4}.weight")
+    config = {"in_channels": int(state["reduce_conv.0.weight"].shape[1]),
+              "mid_channels": int(state["reduce_conv.0.weight"].shape[0]),
+              "context_channels": int(state["context_conv.weight"].shape[0]), "deformable": deformable}
+    if last is not None:
+        config["depth_channels"] = int(last.shape[0])
+    return config
+
+
 def build_bevdepth(
     checkpoint: str | Path | None = None,
     image_size: tuple[int, int] = BEVDEPTH_DEFAULT_SIZE,
     cams: int = 6,
     **overrides: Any,
 ) -> ExportSpec:
-    """The BEVDepth-style depth branch (``PriorDepthNet``) ready for export; ``overrides`` go to its constructor."""
+    """The BEVDepth-style depth branch (``PriorDepthNet``) ready for export; ``overrides`` go to its constructor.
+
+    A checkpoint may be this project's (with a ``config``) or BEVDepth's (a DepthNet state dict or a
+    whole model's, ``...depth_net.*``): channels and the deformable convolution are then read off it.
+    """
     from sgde_plugin.adapters import PriorDepthNet
+    from sgde_plugin.adapters.bevdepth import _depth_net_part
 
     state, info = load_checkpoint(checkpoint) if checkpoint is not None else (None, {})
-    config = BEVDEPTH_DEFAULTS | dict(info.get("config", {})) | overrides
+    if state is not None:
+        state = dict(_depth_net_part(state))
+    config = BEVDEPTH_DEFAULTS | _config_from_state(state) | dict(info.get("config", {})) | overrides
     config["use_prior"] = True
     try:
         net = PriorDepthNet(**config)

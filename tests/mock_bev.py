@@ -193,3 +193,44 @@ class BEVDepthLikeLSSFPN(nn.Module):
                                                        mats_dict, is_return_depth=False))
         out = torch.cat(maps, 1)
         return (out, key[1]) if is_return_depth else out
+
+
+def bevdepth_depthnet_shapes(cin: int, mid: int, ctx: int, bins: int) -> dict[str, tuple[int, ...]]:
+    """Key names and shapes of BEVDepth's DepthNet (base_lss_fpn.py; mmdet BasicBlock, mmcv DCN), written out."""
+    def bn(name, c):
+        return {f"{name}.weight": (c,), f"{name}.bias": (c,), f"{name}.running_mean": (c,),
+                f"{name}.running_var": (c,), f"{name}.num_batches_tracked": ()}
+
+    keys = {"reduce_conv.0.weight": (mid, cin, 3, 3), "reduce_conv.0.bias": (mid,), **bn("reduce_conv.1", mid),
+            "context_conv.weight": (ctx, mid, 1, 1), "context_conv.bias": (ctx,), **bn("bn", 27)}
+    for mlp in ("depth_mlp", "context_mlp"):
+        keys |= {f"{mlp}.fc1.weight": (mid, 27), f"{mlp}.fc1.bias": (mid,), f"{mlp}.fc2.weight": (mid, mid),
+                 f"{mlp}.fc2.bias": (mid,)}
+    for se in ("depth_se", "context_se"):
+        keys |= {f"{se}.conv_reduce.weight": (mid, mid, 1, 1), f"{se}.conv_reduce.bias": (mid,),
+                 f"{se}.conv_expand.weight": (mid, mid, 1, 1), f"{se}.conv_expand.bias": (mid,)}
+    for i in range(3):
+        keys |= {f"depth_conv.{i}.conv1.weight": (mid, mid, 3, 3), **bn(f"depth_conv.{i}.bn1", mid),
+                 f"depth_conv.{i}.conv2.weight": (mid, mid, 3, 3), **bn(f"depth_conv.{i}.bn2", mid)}
+    for i, k in ((1, 1), (2, 3), (3, 3), (4, 3)):
+        keys |= {f"depth_conv.3.aspp{i}.atrous_conv.weight": (mid, mid, k, k), **bn(f"depth_conv.3.aspp{i}.bn", mid)}
+    keys |= {"depth_conv.3.global_avg_pool.1.weight": (mid, mid, 1, 1), **bn("depth_conv.3.global_avg_pool.2", mid),
+             "depth_conv.3.conv1.weight": (mid, 5 * mid, 1, 1), **bn("depth_conv.3.bn1", mid),
+             "depth_conv.4.weight": (mid, mid // 4, 3, 3), "depth_conv.4.conv_offset.weight": (18, mid, 3, 3),
+             "depth_conv.4.conv_offset.bias": (18,),
+             "depth_conv.5.weight": (bins, mid, 1, 1), "depth_conv.5.bias": (bins,)}
+    return keys
+
+
+def bevdepth_depthnet_state(cin: int, mid: int, ctx: int, bins: int, seed: int = 0) -> dict[str, Tensor]:
+    """A random state dict with BEVDepth DepthNet's key names and shapes (a stand-in for its checkpoints)."""
+    g = torch.Generator().manual_seed(seed)
+    out = {}
+    for k, shape in bevdepth_depthnet_shapes(cin, mid, ctx, bins).items():
+        if k.endswith("num_batches_tracked"):
+            out[k] = torch.tensor(100)
+        elif k.endswith("running_var"):
+            out[k] = 0.5 + torch.rand(shape, generator=g)
+        else:
+            out[k] = 0.1 * torch.randn(shape, generator=g)
+    return out
