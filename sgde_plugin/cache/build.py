@@ -261,6 +261,18 @@ def _run_ray(
 
 
 # --- the build ----------------------------------------------------------------------------
+def _note_warning(
+    frame_id: str, text: str, warnings: list[tuple[str, str]], on_warning: Callable[[str, str], None] | None,
+    strict: bool,
+) -> None:
+    """Record a frame's warning, tell the caller, and stop the build when strict."""
+    warnings.append((frame_id, text))
+    if on_warning is not None:
+        on_warning(frame_id, text)
+    if strict:
+        raise StrictWarningError(f"frame {frame_id}: {text}")
+
+
 def build_cache(
     rig: Any,
     out: Any,
@@ -278,10 +290,8 @@ def build_cache(
     strict: bool = False,
 ) -> BuildReport:
     """Build (or resume) the priors of every frame of `rig` into the cache `out` (folder or fsspec
-    URL). Refuses (InputError) a cache built with another calibration or configuration.
-
-    A frame whose prior comes out empty is reported to `on_warning(frame_id, text)` and listed in
-    the report's `warnings`; with `strict` the build stops there with StrictWarningError."""
+    URL). Refuses (InputError) a cache built with another calibration or configuration. A frame whose
+    prior comes out empty goes to `on_warning(frame_id, text)` and the report's `warnings`; `strict` stops there."""
     if engine not in ENGINES:
         raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
     if config is None and compute is None:
@@ -305,7 +315,6 @@ def build_cache(
     built, pixels = 0, 0
     stamps: list[float] = []
     bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
-
     warnings: list[tuple[str, str]] = []
 
     def on_done(result: tuple) -> None:
@@ -314,11 +323,7 @@ def build_cache(
         if error is not None:
             raise InputError(*error)
         if warning:
-            warnings.append((plan.frame_ids[index], warning))
-            if on_warning is not None:
-                on_warning(plan.frame_ids[index], warning)
-            if strict:
-                raise StrictWarningError(f"frame {plan.frame_ids[index]}: {warning}")
+            _note_warning(plan.frame_ids[index], warning, warnings, on_warning, strict)
         built += 1
         pixels += count
         stamps.append(time.perf_counter() - start)

@@ -85,6 +85,11 @@ class PriorConfig:
     def __post_init__(self) -> None:
         if self.matcher not in MATCHERS:
             raise InputError(None, "matcher", f"unknown matcher {self.matcher!r} (expected {', '.join(MATCHERS)})")
+        self._resolve_defaults()
+        self._check()
+
+    def _resolve_defaults(self) -> None:
+        """Replace the None of matcher-dependent fields by the matcher's default."""
         learned = self.matcher in LEARNED_MATCHERS
         for name, (sgbm, nn) in MATCHER_DEFAULTS.items():
             if getattr(self, name) is None:
@@ -94,7 +99,10 @@ class PriorConfig:
         if self.matcher_iters is None and self.matcher == "raft-stereo":
             object.__setattr__(self, "matcher_iters", 32)
         object.__setattr__(self, "matcher_options", dict(self.matcher_options or {}))
-        if learned and not self.matcher_path:
+
+    def _check(self) -> None:
+        """One-line InputError for a value out of its range."""
+        if self.learned and not self.matcher_path:
             raise InputError(None, "matcher_path", f"matcher {self.matcher!r} needs a model file")
         if self.fisheye not in FISHEYE_PATHS:
             raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
