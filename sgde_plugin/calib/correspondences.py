@@ -187,21 +187,28 @@ def find_correspondences(
         involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
         feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress)
     poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
+    match = (lambda a, b, t, t2: _sift_tentative(feats, grids, a, b, t, t2, cfg)) if loftr is None else (
+        lambda a, b, t, t2: _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg))
+    verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress)
+    return [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+
+
+def _verify_all(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], T: int, poses: dict[str, np.ndarray],
+                match: Callable[[str, str, int, int], Tentative], cfg: MatchConfig, timings: Timings,
+                show_progress: bool | None) -> dict[tuple[str, str], list[Verified]]:
+    """Tentative matches and verification of every observation pair (all T x T, or same-frame only)."""
     rng = np.random.default_rng(cfg.seed)
     verified: dict[tuple[str, str], list[Verified]] = {(a, b): [] for a, b in pairs}
     jobs = [(a, b, t, t2) for a, b in pairs for t in range(T) for t2 in range(T) if cfg.cross_time or t == t2]
     for a, b, t, t2 in progress(jobs, desc="calibrate: matching", total=len(jobs), enabled=show_progress):
         t0 = time.perf_counter()
-        if loftr is None:
-            tent = _sift_tentative(feats, grids, a, b, t, t2, cfg)
-        else:
-            tent = _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg)
+        tent = match(a, b, t, t2)
         timings.add("matching", t0)
         t0 = time.perf_counter()
         rel = np.linalg.inv(poses[b][t2]) @ poses[a][t]  # cam a at t -> cam b at t2 (initial)
         verified[(a, b)].append(verify_observation_pair(cams[a], cams[b], t, t2, tent, rel, cfg, rng))
         timings.add("ransac", t0)
-    return [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+    return verified
 
 
 def capture_poses(ego_to_world: np.ndarray, n_cameras: int) -> np.ndarray:

@@ -245,56 +245,68 @@ def _match_window(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego:
     return matches
 
 
+@dataclass
+class Judged:
+    """What a window's calibration produced: verdict, method result (None when not run), matches before and
+    after beta per observation pair."""
+
+    verdict: Verdict
+    result: MethodResult | None
+    matches: list[PairMatches]
+    used: list[PairMatches]
+
+
+def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
+           start: dict[str, np.ndarray]) -> Judged:
+    """Match, apply beta per observation pair, check the ring is constrained, adjust, check the result."""
+    if setup.method == "none":
+        return Judged(Verdict(True), MethodResult(dict(start), message="input extrinsics kept"), [], [])
+    matches = _match_window(setup, cams, win, ego, start)
+    used = [pm.observed_with(setup.rules.min_correspondences) for pm in matches]
+    verdict = check_correspondences({(u.cam_a, u.cam_b): u.view_pairs for u in used}, setup.rules, setup.reference)
+    if not verdict.accepted:
+        return Judged(verdict, None, matches, used)
+    t0 = time.perf_counter()
+    result = run_method(setup.method, cams, setup.pairs, used, ego, setup.reference, setup.adjust)
+    setup.timings.add("adjustment", t0)
+    observed = [(u.cam_a, u.cam_b) for u in used if u.view_pairs > 0]
+    verdict = check_result(result.converged, result.iterations, start, {**start, **result.sensor_to_ego}, observed,
+                           setup.rules)
+    return Judged(verdict, result, matches, used)
+
+
 def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...],
                       start: dict[str, np.ndarray]) -> WindowResult:
-    """Match, apply beta per observation pair, adjust, and judge one window."""
-    pairs = setup.pairs
-    involved = [c.name for c in rig.cameras if any(c.name in p for p in pairs)]
+    """Calibrate and judge one window; its report entry."""
+    involved = [c.name for c in rig.cameras if any(c.name in p for p in setup.pairs)]
     cams = [Camera(c.name, c.intrinsics, start[c.name]) for c in rig.cameras if c.name in involved]
     ego = window_ego_poses(rig, win, involved)
     t_win = time.perf_counter()
     before = dict(setup.timings.seconds)
-    result: MethodResult | None = None
-    matches: list[PairMatches] = []
-    used: list[PairMatches] = []
-    if setup.method == "none":
-        verdict = Verdict(True)
-        result = MethodResult(dict(start), message="input extrinsics kept")
-    else:
-        matches = _match_window(setup, cams, win, ego, start)
-        beta = setup.rules.min_correspondences
-        used = [pm.observed_with(beta) for pm in matches]
-        verdict = check_correspondences({(u.cam_a, u.cam_b): u.view_pairs for u in used}, setup.rules,
-                                        setup.reference)
-        if verdict.accepted:
-            t0 = time.perf_counter()
-            result = run_method(setup.method, cams, pairs, used, ego, setup.reference, setup.adjust)
-            setup.timings.add("adjustment", t0)
-            after = {**start, **result.sensor_to_ego}
-            observed = [(u.cam_a, u.cam_b) for u in used if u.view_pairs > 0]
-            verdict = check_result(result.converged, result.iterations, start, after, observed, setup.rules)
-    after = {**start, **result.sensor_to_ego} if result is not None else dict(start)
-    moved = translation_changes(start, after, pairs)
-    rot, trans = _changes(start, after, pairs)
+    j = _judge(rig, setup, cams, win, ego, start)
+    res = j.result or MethodResult(dict(start), iterations=0, converged=False)
+    after = {**start, **res.sensor_to_ego}
+    rot, trans = _changes(start, after, setup.pairs)
     report = {
         "index": k, "frames": [f.id for f in win], "timestamp_us": int(win[0].timestamp_us),
-        "accepted": verdict.accepted,
-        "rule": verdict.rule,
-        "reason": verdict.reason,
-        "rules_fired": [{"rule": r, "reason": why} for r, why in verdict.fired_list()],
-        "pairs": _pair_rows(matches, used, result, moved, setup.rules.min_correspondences),
-        "iterations": int(result.iterations) if result is not None else 0,
-        "converged": bool(result.converged) if result is not None else False,
-        "message": result.message if result is not None else "",
-        "rms_px_before": _num(result.rms_before_px) if result is not None else None,
-        "rms_px_after": _num(result.rms_after_px) if result is not None else None,
+        "accepted": j.verdict.accepted,
+        "rule": j.verdict.rule,
+        "reason": j.verdict.reason,
+        "rules_fired": [{"rule": r, "reason": why} for r, why in j.verdict.fired_list()],
+        "pairs": _pair_rows(j.matches, j.used, j.result, translation_changes(start, after, setup.pairs),
+                            setup.rules.min_correspondences),
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "message": res.message,
+        "rms_px_before": _num(res.rms_before_px),
+        "rms_px_after": _num(res.rms_after_px),
         "max_rotation_change_deg": rot,
         "max_translation_change_m": trans,
         "seconds": {s: round(setup.timings.seconds.get(s, 0.0) - before.get(s, 0.0), 3)
                     for s in setup.timings.seconds},
         "wall_seconds": round(time.perf_counter() - t_win, 3),
     }
-    return WindowResult(verdict, after, report)
+    return WindowResult(j.verdict, after, report)
 
 
 def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
