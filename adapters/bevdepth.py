@@ -80,27 +80,32 @@ def _few(keys: list[str]) -> str:
     return ", ".join(keys[:3]) + (f" (+{len(keys) - 3} more)" if len(keys) > 3 else "")
 
 
+def _key_differences(module: nn.Module, state_dict: Mapping[str, Tensor], optional: str | None) -> list[str]:
+    """Missing, unexpected and wrongly shaped keys of ``state_dict`` against ``module``, as phrases."""
+    expected = {k: tuple(v.shape) for k, v in module.state_dict().items()}
+    given = set(state_dict)
+    if optional and not any(k.startswith(optional) for k in given):
+        given |= {k for k in expected if k.startswith(optional)}
+    # like torch, a BatchNorm's num_batches_tracked may be absent (older checkpoints)
+    missing = sorted(k for k in set(expected) - given if not k.endswith(".num_batches_tracked"))
+    unexpected = sorted(given - set(expected))
+    wrong = sorted(k for k in set(state_dict) & set(expected) if tuple(state_dict[k].shape) != expected[k])
+    groups = (("missing {n} keys", missing), ("unexpected {n} keys", unexpected), ("wrong shape", wrong))
+    return [f"{label.format(n=len(keys))}: {_few(keys)}" for label, keys in groups if keys]
+
+
 def state_dict_mismatch(module: nn.Module, state_dict: Mapping[str, Tensor], optional: str | None = None) -> str | None:
     """One line saying why ``state_dict`` does not fit ``module`` exactly (None when it does).
 
     Keys under ``optional`` (the prior path) may be absent as a whole; like torch, a BatchNorm's
     ``num_batches_tracked`` may be absent.
     """
-    expected = {k: tuple(v.shape) for k, v in module.state_dict().items()}
-    given = set(state_dict)
-    if optional and not any(k.startswith(optional) for k in given):
-        given |= {k for k in expected if k.startswith(optional)}
-    missing = sorted(k for k in set(expected) - given if not k.endswith(".num_batches_tracked"))
-    unexpected = sorted(given - set(expected))
-    wrong = sorted(k for k in set(state_dict) & set(expected) if tuple(state_dict[k].shape) != expected[k])
-    if not (missing or unexpected or wrong):
+    parts = _key_differences(module, state_dict, optional)
+    if not parts:
         return None
-    parts = [f"missing {len(missing)} keys: {_few(missing)}"] if missing else []
-    parts += [f"unexpected {len(unexpected)} keys: {_few(unexpected)}"] if unexpected else []
-    parts += [f"wrong shape: {_few(wrong)}"] if wrong else []
     hint = ""
     has_dcn = any(k.startswith(_DCN_KEY) for k in state_dict)
-    if has_dcn != any(k.startswith(_DCN_KEY) for k in expected):
+    if has_dcn != any(k.startswith(_DCN_KEY) for k in module.state_dict()):
         hint = ("; the checkpoint has BEVDepth's deformable convolution: build with deformable=True" if has_dcn
                 else "; the checkpoint has no deformable convolution: build with deformable=False")
     return f"does not fit {type(module).__name__}: " + "; ".join(parts) + hint
