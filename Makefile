@@ -20,15 +20,19 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/sgde demo --out $(OUT)
 
-test: $(STAMP)
-	$(BIN)/ruff check sgde_plugin adapters export tests
+test: lint
 	$(BIN)/python -m pytest tests
 
 bench: $(STAMP)
 	$(BIN)/sgde bench --fast --json bench.json
 
+# ruff; import-linter on a copy of the package laid out as installed (adapters/ and export/ inside sgde_plugin/),
+# so the layer contract in .importlinter sees every module; radon's complexity limits (tools/complexity.py).
 lint: $(STAMP)
-	$(BIN)/ruff check sgde_plugin adapters export tests
+	$(BIN)/ruff check sgde_plugin adapters export tests tools
+	rm -rf .lint && mkdir -p .lint && cp -r sgde_plugin .lint/ && cp -r adapters export .lint/sgde_plugin/
+	cd .lint && PYTHONPATH=. ../$(BIN)/lint-imports --no-cache ../.importlinter
+	$(BIN)/python tools/complexity.py
 
 clean:
-	rm -rf $(VENV) build *.egg-info demo_out bench.json
+	rm -rf $(VENV) build *.egg-info demo_out bench.json .lint

@@ -9,9 +9,10 @@ frame (x forward, y left, z up), which is ours. Images are undistorted pinholes 
 Frames: one per keyframe (`sample`), with frame id = sample token; with `sweeps=True` also one per
 12 Hz CAM_FRONT sweep (frame id = that sample_data token), the other cameras taking their sweep
 nearest in time. Keyframes are identical in both modes. The frame's timestamp and `ego_to_world`
-come from the CAM_FRONT sample_data: nuScenes stores one ego pose per sample_data timestamp, so the
-six cameras of a frame have slightly different ego poses (up to ~50 ms apart); we keep the front
-camera's, and sweeps reuse the keyframe calibration (nuScenes calibrates per scene, not per sweep).
+come from the CAM_FRONT sample_data; nuScenes stores one ego pose per sample_data timestamp and its
+cameras fire one after another over ~50 ms, so every other camera keeps its own timestamp and ego pose
+as its capture (`Frame.cameras`). Sweeps reuse the keyframe calibration (nuScenes calibrates per scene,
+not per sweep).
 
 The big tables (`sample_data`, `ego_pose`: ~2.6M rows each in v1.0-trainval) are streamed: each row
 is parsed, reduced to a small tuple (cameras only; keyframes only unless sweeps are asked for; only
@@ -33,7 +34,7 @@ from ..cameras import Camera, intrinsics_from_dict
 from ..errors import InputError
 from ..geometry import make_transform, quaternion_to_rotation
 from ..io import image_size
-from ..rig import Frame, Rig, ring_pairs
+from ..rig import Frame, Rig, own_captures, ring_pairs
 from .jsonio import get, number_list, read_json, scan_table
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
@@ -224,7 +225,7 @@ class NuScenesTables:
         path = self.dir / "ego_pose.json"
         needed: set[str] = set()
         for rows in self._rows_by_scene.values():
-            needed.update(r[_EGO] for r in rows if r[_CHANNEL] == REFERENCE)
+            needed.update(r[_EGO] for r in rows)
 
         def reduce(row: dict) -> tuple | None:
             token = row.get("token")
@@ -305,12 +306,17 @@ class NuScenesTables:
             raise InputError(path, key, exc.problem) from None
         return Camera(channel, intrinsics, _pose(row, path, where))
 
+    def _ego_pose(self, row: tuple) -> np.ndarray:
+        pose = self._ego.get(row[_EGO])
+        if pose is None:
+            raise InputError(self.dir / "ego_pose.json", f"token {row[_EGO]}",
+                             f"missing (referenced by sample_data {row[_TOKEN]})")
+        return pose
+
     def _frame(self, frame_id: str, chosen: dict[str, tuple], check: bool, cameras: list[Camera]) -> Frame:
         ref = chosen[REFERENCE]
-        pose = self._ego.get(ref[_EGO])
-        if pose is None:
-            raise InputError(self.dir / "ego_pose.json", f"token {ref[_EGO]}",
-                             f"missing (referenced by sample_data {ref[_TOKEN]})")
+        pose = self._ego_pose(ref)
+        captures = own_captures(ref[_TIME], pose, {c: (r[_TIME], self._ego_pose(r)) for c, r in chosen.items()})
         images = _Files(self.root, {c: r[_FILE] for c, r in chosen.items()})
         if check:
             for cam in cameras:
@@ -321,7 +327,7 @@ class NuScenesTables:
                 if image_size(path) != (cam.width, cam.height):
                     w, h = image_size(path)
                     raise InputError(path, "size", f"image is {w}x{h}, sample_data says {cam.width}x{cam.height}")
-        return Frame(frame_id, ref[_TIME], pose, images)
+        return Frame(frame_id, ref[_TIME], pose, images, cameras=captures)
 
 
 class _Files(Mapping):
