@@ -2,15 +2,10 @@
 
 from __future__ import annotations
 
-import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sgde_plugin.nn import PriorEncoding
-
-# Stand-in for "no value" while min pooling; finite and below the float16 maximum (65504) so the
-# same graph works in half precision. Any real prior is far closer than this.
-_FAR = 1.0e4
+from sgde_plugin.splat import min_pool_nonzero_torch
 
 
 def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
@@ -18,17 +13,14 @@ def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
 
     This is BEVDepth's ground-truth downsampling (nearest surface per patch), except that a patch
     without any value is 0 ("none") instead of a fill value. H and W must be multiples of stride.
+    (`sgde_plugin.splat.min_pool_nonzero_torch`; exports to ONNX, works in half precision.)
     """
     if stride == 1:
         return depth
-    *lead, h, w = depth.shape
+    h, w = depth.shape[-2:]
     if h % stride or w % stride:
         raise ValueError(f"depth size {h}x{w} is not a multiple of the stride {stride}")
-    flat = depth.reshape(-1, 1, h, w)
-    far = torch.where(flat > 0, flat, torch.full_like(flat, _FAR))
-    pooled = -F.max_pool2d(-far, kernel_size=stride, stride=stride)
-    pooled = torch.where(pooled >= _FAR, torch.zeros_like(pooled), pooled)
-    return pooled.reshape(*lead, h // stride, w // stride)
+    return min_pool_nonzero_torch(depth, stride)
 
 
 class PriorFeatureEncoder(nn.Module):

@@ -44,6 +44,7 @@ class PriorCompute:
         self.config = config
         self._builder: Any = None
         self._masks: dict[str, np.ndarray] | None = None
+        self.last_warning: str | None = None  # the builder's note when the last frame's prior came out empty
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_builder": None, "_masks": None}
@@ -59,6 +60,7 @@ class PriorCompute:
             masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
             self._masks = {c: m for c, m in masks.items() if m is not None} or None
         maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks)
+        self.last_warning = self._builder.last_warning
         return {cam: (m.depth, m.confidence) for cam, m in maps.items()}
 
 
@@ -77,6 +79,7 @@ class BuildReport:
     workers: int
     engine: str
     frame_seconds: list[float] = field(default_factory=list)  # when each built frame was done, from start
+    warnings: list[tuple[str, str]] = field(default_factory=list)  # (frame id, why its prior is empty)
 
     def steady_rate(self) -> float:
         """Frames per second once every worker has finished its first frame (start-up excluded)."""
@@ -109,8 +112,8 @@ def default_scene_name(rig: Any) -> str:
     return sanitize_scene_name(name)
 
 
-def limit_threads(n: int) -> dict[str, int]:
-    """Set OpenCV's and torch's thread counts to n; returns the previous values."""
+def limit_threads(n: int, torch_n: int | None = None) -> dict[str, int]:
+    """Set OpenCV's thread count to n and torch's to torch_n (default n); returns the previous values."""
     previous = {}
     try:
         import cv2
@@ -122,7 +125,7 @@ def limit_threads(n: int) -> dict[str, int]:
     if "torch" in sys.modules:
         torch = sys.modules["torch"]
         previous["torch"] = torch.get_num_threads()
-        torch.set_num_threads(n)
+        torch.set_num_threads(n if torch_n is None else torch_n)
     return previous
 
 
@@ -137,25 +140,31 @@ def _restore_threads(previous: Mapping[str, int]) -> None:
         torch.set_num_threads(previous["torch"])
 
 
-def run_frame(compute: Compute, writer: SceneWriter, index: int, frame_id: str) -> tuple[int, int, tuple | None]:
-    """Compute and write one frame: (index, valid pixels, error as (file, key, problem) or None)."""
+class StrictWarningError(Exception):
+    """A frame's prior came out empty and the build was asked to be strict (`sgde prior --strict`, exit 3)."""
+
+
+def run_frame(compute: Compute, writer: SceneWriter, index: int, frame_id: str) -> tuple:
+    """Compute and write one frame: (index, valid pixels, error as (file, key, problem) or None, warning or None).
+
+    The warning is the compute's `last_warning` (PriorCompute: why the frame's prior is empty)."""
     try:
         maps = compute(frame_id)
-        return index, writer.write_frame(index, maps), None
+        return index, writer.write_frame(index, maps), None, getattr(compute, "last_warning", None)
     except InputError as exc:  # passed back as a tuple: InputError does not pickle
-        return index, 0, (exc.file, exc.key, exc.problem)
+        return index, 0, (exc.file, exc.key, exc.problem), None
 
 
 # --- local processes ----------------------------------------------------------------------
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(compute: Compute, writer: SceneWriter) -> None:
-    limit_threads(1)
+def _init_worker(compute: Compute, writer: SceneWriter, torch_n: int = 1) -> None:
+    limit_threads(1, torch_n)
     _WORKER["compute"], _WORKER["writer"] = compute, writer
 
 
-def _worker_frame(index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+def _worker_frame(index: int, frame_id: str) -> tuple:
     return run_frame(_WORKER["compute"], _WORKER["writer"], index, frame_id)
 
 
@@ -172,15 +181,17 @@ def _mp_context() -> multiprocessing.context.BaseContext:
 
 
 def _run_local(tasks: list[tuple[int, str]], compute: Compute, writer: SceneWriter, workers: int, on_done) -> None:
+    torch_n = torch_threads_per_worker(workers)  # a learned matcher parallelises inside torch
     if workers <= 1:
-        previous = limit_threads(1)
+        previous = limit_threads(1, torch_n)
         try:
             for index, fid in tasks:
                 on_done(run_frame(compute, writer, index, fid))
         finally:
             _restore_threads(previous)
         return
-    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(), initializer=_init_worker, initargs=(compute, writer))
+    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(), initializer=_init_worker,
+                               initargs=(compute, writer, torch_n))
     with pool as ex:
         queue = collections.deque(tasks)
         running = set()
@@ -205,7 +216,7 @@ class RayFrameWorker:
         limit_threads(1)
         self.compute, self.writer = compute, writer
 
-    def run(self, index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+    def run(self, index: int, frame_id: str) -> tuple:
         """Compute and write one frame."""
         return run_frame(self.compute, self.writer, index, frame_id)
 
@@ -250,6 +261,18 @@ def _run_ray(
 
 
 # --- the build ----------------------------------------------------------------------------
+def _note_warning(
+    frame_id: str, text: str, warnings: list[tuple[str, str]], on_warning: Callable[[str, str], None] | None,
+    strict: bool,
+) -> None:
+    """Record a frame's warning, tell the caller, and stop the build when strict."""
+    warnings.append((frame_id, text))
+    if on_warning is not None:
+        on_warning(frame_id, text)
+    if strict:
+        raise StrictWarningError(f"frame {frame_id}: {text}")
+
+
 def build_cache(
     rig: Any,
     out: Any,
@@ -263,9 +286,12 @@ def build_cache(
     ray_address: str | None = None,
     storage_options: Mapping[str, Any] | None = None,
     show_progress: bool | None = None,
+    on_warning: Callable[[str, str], None] | None = None,
+    strict: bool = False,
 ) -> BuildReport:
     """Build (or resume) the priors of every frame of `rig` into the cache `out` (folder or fsspec
-    URL). Refuses (InputError) a cache built with another calibration or configuration."""
+    URL). Refuses (InputError) a cache built with another calibration or configuration. A frame whose
+    prior comes out empty goes to `on_warning(frame_id, text)` and the report's `warnings`; `strict` stops there."""
     if engine not in ENGINES:
         raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
     if config is None and compute is None:
@@ -289,12 +315,15 @@ def build_cache(
     built, pixels = 0, 0
     stamps: list[float] = []
     bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
+    warnings: list[tuple[str, str]] = []
 
-    def on_done(result: tuple[int, int, tuple | None]) -> None:
+    def on_done(result: tuple) -> None:
         nonlocal built, pixels
-        _, count, error = result
+        index, count, error, warning = result
         if error is not None:
             raise InputError(*error)
+        if warning:
+            _note_warning(plan.frame_ids[index], warning, warnings, on_warning, strict)
         built += 1
         pixels += count
         stamps.append(time.perf_counter() - start)
@@ -321,15 +350,49 @@ def build_cache(
         workers=used,
         engine=engine,
         frame_seconds=stamps,
+        warnings=warnings,
     )
 
 
-def default_workers() -> int:
-    """Number of worker processes by default: the CPUs this process may use."""
+def usable_cpus() -> int:
+    """The CPUs this process may use."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (MemAvailable), None where unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+# peak memory of one worker running a learned matcher (RAFT-Stereo, six-camera frame at scale 0.5: 1.1-1.8 GB)
+LEARNED_WORKER_BYTES = 2 * 1024**3
+
+
+def default_workers(config: Any = None) -> int:
+    """Worker processes by default: one per CPU; a learned matcher: as many as memory allows (2 GiB each),
+    and one on a GPU (torch then uses the CPUs inside that worker)."""
+    cpus = usable_cpus()
+    if not getattr(config, "learned", False):
+        return cpus
+    if getattr(config, "device", "cpu") != "cpu":
+        return 1
+    memory = available_memory()
+    return cpus if memory is None else max(1, min(cpus, memory // LEARNED_WORKER_BYTES))
+
+
+def torch_threads_per_worker(workers: int) -> int:
+    """Torch threads per worker process: the CPUs shared out (one worker gets them all)."""
+    return max(1, usable_cpus() // max(1, workers))
 
 
 __all__ = [
@@ -340,6 +403,10 @@ __all__ = [
     "build_cache",
     "default_scene_name",
     "default_workers",
+    "StrictWarningError",
+    "available_memory",
+    "torch_threads_per_worker",
+    "usable_cpus",
     "sanitize_scene_name",
     "limit_threads",
     "run_frame",

@@ -19,40 +19,41 @@ from ..cameras import Camera
 from ..geometry import invert_transform
 from ..metrics import METRIC_KEYS, depth_metrics
 from ..rig import Rig
+from ..splat import lift_depth_torch, project_to_pixels, transform_points_torch
 from .rectify import torch_threads
 
 GROUP_COLUMNS = ("coverage", *METRIC_KEYS, "n_prior", "n_overlap")
 
 
 def true_overlap(
-    cam_a: Camera, gt_a: np.ndarray, cam_b: Camera, gt_b: np.ndarray, mask_b: np.ndarray | None = None,
-    rel_tol: float = 0.03, abs_tol: float = 0.1,
+    cam_a: Camera, gt_a: np.ndarray, cam_b: Camera, gt_b: np.ndarray | None, mask_b: np.ndarray | None = None,
+    rel_tol: float = 0.03, abs_tol: float = 0.1, a_to_b: np.ndarray | None = None,
 ) -> np.ndarray:
     """Bool (H, W) of camera A: ground-truth pixels whose 3-D point B sees unoccluded.
 
     B "sees" the point when it projects inside B's image (and mask) and B's ground-truth depth at
     the nearest pixel agrees with the point's depth in B within `rel_tol` (relative) + `abs_tol` m.
+    With `gt_b` None (sparse truth such as LiDAR, which cannot confirm visibility) projecting inside
+    B is enough. `a_to_b` (4x4, camera A's frame -> camera B's) defaults to the extrinsics'
+    inv(sensor_to_ego_B) @ sensor_to_ego_A; pass the per-capture one when the cameras fired apart.
     Both cameras must carry their true extrinsics.
     """
     h, w = gt_a.shape
-    ys, xs = np.nonzero(gt_a > 0)
     out = np.zeros((h, w), bool)
-    if xs.size == 0:
-        return out
+    if a_to_b is None:
+        a_to_b = invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego
     with torch_threads(1):
-        uv = torch.as_tensor(np.stack([xs, ys], axis=-1), dtype=torch.float64)
-        pts, ok = cam_a.intrinsics.points_from_depth_torch(uv, torch.as_tensor(gt_a[ys, xs], dtype=torch.float64))
-        T = torch.as_tensor(invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego)
-        pts_b = pts @ T[:3, :3].T + T[:3, 3]
-        uv_b, vis = cam_b.intrinsics.project_torch(pts_b)
-        expected = cam_b.intrinsics.depth_torch(pts_b).numpy()
-    col = np.clip(np.rint(uv_b[:, 0].numpy()), 0, cam_b.width - 1).astype(np.intp)
-    row = np.clip(np.rint(uv_b[:, 1].numpy()), 0, cam_b.height - 1).astype(np.intp)
-    seen = (ok & vis).numpy()
-    found = gt_b[row, col]
-    seen &= (found > 0) & (np.abs(found - expected) <= rel_tol * expected + abs_tol)
+        gt = torch.as_tensor(np.asarray(gt_a, dtype=np.float64))
+        pts, lifted = lift_depth_torch(gt, cam_a)
+        hits = project_to_pixels(transform_points_torch(torch.as_tensor(a_to_b), pts), cam_b)
+    ys, xs = np.nonzero(lifted.numpy())
+    seen, index = hits.valid.numpy(), hits.index.numpy()
+    if gt_b is not None:
+        found = np.asarray(gt_b).reshape(-1)[index]
+        expected = hits.depth.numpy()
+        seen &= (found > 0) & (np.abs(found - expected) <= rel_tol * expected + abs_tol)
     if mask_b is not None:
-        seen &= mask_b[row, col]
+        seen &= np.asarray(mask_b).reshape(-1)[index]
     out[ys[seen], xs[seen]] = True
     return out
 
