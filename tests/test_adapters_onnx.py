@@ -57,9 +57,9 @@ def test_voxformer_proposals_export_for_fisheye_and_pinhole_rigs(tmp_path):
         cams = preset_cameras(preset, scale)
         module = RigDepthToVoxelProposals(DepthToVoxelProposals(grid), [c.intrinsics for c in cams])
         path = export_onnx(module, _vox_inputs(cams, 2, 0), tmp_path / f"{preset}.onnx", input_names=names,
-                           output_names=["occupancy", "proposals"],
-                           dynamic_axes={k: AXES_B for k in (*names, "occupancy", "proposals")})
+                           output_names=["occupancy", "coarse_occupancy"],
+                           dynamic_axes={k: AXES_B for k in (*names, "occupancy", "coarse_occupancy")})
         cases = [("random", 1, _vox_inputs(cams, 1, 1)), ("random", 3, _vox_inputs(cams, 3, 2))]
-        results = check_parity(path, module, cases, names, ["occupancy", "proposals"])
+        results = check_parity(path, module, cases, names, ["occupancy", "coarse_occupancy"])
         assert all(r.max_abs_diff == 0.0 for r in results)  # same voxels, exactly
         assert all(r.output_range == 1.0 for r in results)  # and not an empty grid
