@@ -147,7 +147,8 @@ def test_a_scene_being_created_by_another_build_is_not_deleted(tmp_path):
     parts_a = {**fingerprint_parts(rig_a, CONFIG, ALGO), "config_document": config_document(CONFIG, ALGO)}
     parts_b = {**fingerprint_parts(rig_b, CONFIG, ALGO), "config_document": config_document(CONFIG, ALGO)}
     prepare_scene(str(out), "s", rig_a, parts_a)
-    zarr.open_group(str(out / "s"), mode="r+").attrs.update({"ready": False})  # as seen while build A is still creating the scene
+    # as seen while build A is still creating the scene
+    zarr.open_group(str(out / "s"), mode="r+").attrs.update({"ready": False})
     with pytest.raises(InputError, match="being created by another build"):
         prepare_scene(str(out), "s", rig_b, parts_b)  # without the writer lock: refused, not deleted
     assert scene_arrays(str(out), "s")["attrs"]["fingerprint"] == parts_a["fingerprint"]
