@@ -39,6 +39,7 @@ from .layout import (
     missing_shards,
     open_arrays,
     read_counts,
+    scene_groups,
     scene_problems,
 )
 
@@ -93,9 +94,12 @@ def prepare_scene(
         raise InputError(location_name(location), scene, "the rig has no frames")
     store = open_store(location, read_only=False, storage_options=storage_options)
     root = _prepare_root(store, location, parts)
-    group = None
-    if scene in set(root.group_keys()):
-        group = root[scene]
+    groups, broken = scene_groups(store, root)
+    if scene in broken:
+        raise InputError(location_name(location), scene, f"damaged: {broken[scene]}; it cannot be repaired in "
+                         "place: build into another --out")
+    group = groups.get(scene)
+    if group is not None:
         if not group.attrs.get("ready"):
             if not locked and group.attrs.get("fingerprint") != parts["fingerprint"]:
                 raise InputError(

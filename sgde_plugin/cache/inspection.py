@@ -7,9 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from .backends import local_path, location_name, open_root, open_store, store_keys
+from .backends import location_name, open_root, open_store, store_keys
 from .fingerprints import CACHE_FORMAT, digest
-from .layout import frame_problems, missing_shards, open_arrays, read_counts, scene_problems
+from .layout import frame_problems, missing_shards, open_arrays, read_counts, scene_groups, scene_problems
 from .store import list_scenes, scene_arrays
 
 
@@ -22,7 +22,12 @@ def cache_info(location: Any, storage_options: Mapping[str, Any] | None = None) 
     total_bytes = sum(keys.values())
     scenes, cameras = [], {}
     for name in list_scenes(location, storage_options):
-        arrays = scene_arrays(location, name, storage_options)
+        try:
+            arrays = scene_arrays(location, name, storage_options)
+        except Exception as exc:  # noqa: BLE001 - a damaged scene is reported, `cache verify` names it
+            scenes.append({"scene": name, "frames_done": 0, "frames_total": 0,
+                           "note": f"damaged ({type(exc).__name__}): see `sgde cache verify`"})
+            continue
         attrs = arrays["attrs"]
         if not attrs.get("ready"):
             scenes.append({"scene": name, "frames_done": 0, "frames_total": 0, "note": "creation interrupted"})
@@ -75,19 +80,14 @@ def _problem(scene: str, frame: str, camera: str, array: str, problem: str) -> d
     return {"scene": scene, "frame": frame, "camera": camera, "array": array, "problem": problem}
 
 
-def _root_problems(location: Any, root: Any, names: list[str]) -> list[dict[str, str]]:
-    """Problems of the cache as a whole: root attributes, no scene at all, scene folders without metadata."""
-    out = []
+def _root_problems(root: Any, names: list[str], broken: Mapping[str, str]) -> list[dict[str, str]]:
+    """Problems of the cache as a whole: root attributes, no scene at all, scenes that do not open."""
+    out = [_problem(name, "-", "-", "zarr.json", why) for name, why in broken.items()]
     rattrs = dict(root.attrs)
     if rattrs.get("format") != CACHE_FORMAT:
         out.append(_problem("-", "-", "-", "zarr.json", f"format is {rattrs.get('format')!r}, not {CACHE_FORMAT!r}"))
     elif "config" in rattrs and digest(rattrs["config"]) != rattrs.get("config_fingerprint"):
         out.append(_problem("-", "-", "-", "zarr.json", "the config document does not match config_fingerprint"))
-    path = local_path(location)
-    if path is not None:
-        for folder in sorted(p.name for p in path.iterdir() if p.is_dir() and not p.name.startswith(".")):
-            if folder not in names:
-                out.append(_problem(folder, "-", "-", "zarr.json", "scene folder without readable metadata (damaged)"))
     if not names and not out:
         out.append(_problem("-", "-", "-", "-", "the cache holds no scene"))
     return out
@@ -98,11 +98,11 @@ def verify_cache(location: Any, storage_options: Mapping[str, Any] | None = None
     problems are named by scene, frame and camera. A frame not built yet is a problem (incomplete cache)."""
     store = open_store(location, read_only=True, storage_options=storage_options)
     root = open_root(store, location, "r")
-    names = sorted(root.group_keys())
-    problems = _root_problems(location, root, names)
+    groups, broken = scene_groups(store, root)
+    problems = _root_problems(root, list(groups), broken)
     tally = {"chunks": 0, "frames": 0}
-    for name in names:
-        problems += _verify_scene(store, root, name, tally)
+    for name, group in groups.items():
+        problems += _verify_scene(store, group, name, tally)
     return {
         "location": location_name(location),
         "ok": not problems,
@@ -112,13 +112,9 @@ def verify_cache(location: Any, storage_options: Mapping[str, Any] | None = None
     }
 
 
-def _verify_scene(store: Any, root: Any, name: str, tally: dict[str, int]) -> list[dict[str, str]]:
+def _verify_scene(store: Any, group: Any, name: str, tally: dict[str, int]) -> list[dict[str, str]]:
     """Problems of one scene; `tally` counts chunks read and frames checked."""
-    try:
-        group = root[name]
-        attrs = dict(group.attrs)
-    except Exception as exc:  # noqa: BLE001 - a corrupted zarr.json is a finding
-        return [_problem(name, "-", "-", "zarr.json", f"unreadable ({type(exc).__name__})")]
+    attrs = dict(group.attrs)
     if not attrs.get("ready"):
         return [_problem(name, "-", "-", "-", "scene creation was interrupted (run the build again)")]
     arrays, texts = open_arrays(group)

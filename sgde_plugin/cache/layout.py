@@ -68,6 +68,34 @@ def frame_source(frame: Any) -> str:
     return digest({"frame": doc, "image_bytes": sizes})
 
 
+def scene_groups(store: Store, root: Any) -> tuple[dict[str, Any], dict[str, str]]:
+    """{name: group} of a cache's scenes, and {name: problem} of the entries that do not open as one
+    (a scene folder whose zarr.json is missing or unreadable)."""
+    import zarr
+    from zarr.core.sync import sync
+
+    async def _names() -> list[str]:
+        return [k async for k in store.list_dir("")]
+
+    groups, broken = {}, {}
+    for name in sorted(sync(_names())):
+        if name == "zarr.json" or name.startswith(".") or name.endswith(".partial"):
+            continue
+        try:
+            node = root[name]
+        except KeyError:
+            broken[name] = "scene folder without metadata (zarr.json missing)"
+            continue
+        except Exception as exc:  # noqa: BLE001 - a corrupted zarr.json is a finding
+            broken[name] = f"zarr.json unreadable ({type(exc).__name__})"
+            continue
+        if isinstance(node, zarr.Group):
+            groups[name] = node
+        else:
+            broken[name] = "an array where a scene group belongs"
+    return groups, broken
+
+
 def shard_key(array: Any, frame_index: int) -> str:
     """Store key of the shard (all cameras) of one frame of a (frames, cameras, H, W) array."""
     return f"{array.path}/{array.metadata.encode_chunk_key((frame_index, 0, 0, 0))}"
@@ -218,6 +246,7 @@ __all__ = [
     "open_arrays",
     "read_checked",
     "read_counts",
+    "scene_groups",
     "scene_problems",
     "shard_key",
 ]

@@ -56,6 +56,7 @@ from .layout import (  # noqa: F401 - re-exported
     frame_source,
     open_arrays,
     read_counts,
+    scene_groups,
     scene_problems,
 )
 from .resample import resize_depth
@@ -109,16 +110,20 @@ class PriorCache:
         if rattrs.get("format") != CACHE_FORMAT:
             found = rattrs.get("format")
             raise InputError(location_name(self.location), "format", f"expected {CACHE_FORMAT!r}, found {found!r}")
-        names = sorted(root.group_keys())
+        groups, broken = scene_groups(store, root)
+        names = sorted(groups)
         if self.scene is not None:
-            if self.scene not in names:
+            if self.scene not in groups and self.scene not in broken:
                 raise InputError(location_name(self.location), self.scene, f"no such scene (has {', '.join(names)})")
-            names = [self.scene]
+            names = [self.scene] if self.scene in groups else []
+            broken = {k: v for k, v in broken.items() if k == self.scene}
+        for name, why in broken.items():
+            raise InputError(location_name(self.location), name, f"damaged: {why} (`sgde cache verify` lists all)")
         scenes: dict[str, dict[str, Any]] = {}
         frame_index: dict[str, tuple[str, int]] = {}
         duplicates: set[str] = set()
         for name in names:
-            state = self._open_scene(root, name)
+            state = self._open_scene(groups[name], name)
             if state is None:
                 continue
             scenes[name] = state
@@ -134,15 +139,11 @@ class PriorCache:
         }
         return self._state
 
-    def _open_scene(self, root: Any, name: str) -> dict[str, Any] | None:
+    def _open_scene(self, group: Any, name: str) -> dict[str, Any] | None:
         """One scene's arrays and attributes, after checking them against each other (None while the
         scene's creation is unfinished); InputError names a damaged scene."""
         where = location_name(self.location)
-        try:
-            group = root[name]
-            attrs = dict(group.attrs)
-        except Exception as exc:  # noqa: BLE001 - a corrupted zarr.json is bad input, not a crash
-            raise InputError(where, f"{name}/zarr.json", f"unreadable ({type(exc).__name__})") from None
+        attrs = dict(group.attrs)
         if not attrs.get("ready"):
             return None
         arrays, problems = open_arrays(group)
@@ -362,9 +363,10 @@ def scene_arrays(location: Any, scene: str, storage_options: Mapping[str, Any] |
 
 
 def list_scenes(location: Any, storage_options: Mapping[str, Any] | None = None) -> list[str]:
-    """Scene names of a cache (including scenes whose creation was interrupted)."""
+    """Scene names of a cache (including scenes whose creation was interrupted or whose metadata is damaged)."""
     store = open_store(location, read_only=True, storage_options=storage_options)
-    return sorted(open_root(store, location, "r").group_keys())
+    groups, broken = scene_groups(store, open_root(store, location, "r"))
+    return sorted([*groups, *broken])
 
 
 __all__ = [

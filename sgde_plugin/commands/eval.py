@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .options import number
+
 HELP = "evaluate cached depth priors against the rig folder's ground truth (accuracy and overlap coverage)"
 
 
@@ -16,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--truth", help="sgde-rig/1 file with the TRUE extrinsics that define the overlap (default: "
         "DIR/rig_true.json when present, else DIR's own rig)",
     )
-    parser.add_argument("--max-depth", type=float, default=80.0, help="ground truth beyond this is ignored (80 m)")
+    parser.add_argument("--max-depth", type=number(0, 1e4, lo_open=True), default=80.0,
+                        help="ground truth beyond this is ignored (80 m)")
 
 
 def _truth_rig(rig, dir_arg: str, truth: str | None):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .options import integer, number
+
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
 
@@ -14,13 +16,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rig", help="sgde-rig/1 file whose cameras (e.g. refined extrinsics) replace DIR's")
     parser.add_argument("--matcher", default="sgbm", help="sgbm (default), torch or onnx (with --matcher-path)")
     parser.add_argument("--matcher-path", help="learned matcher file (torch module / state dict, or ONNX)")
-    parser.add_argument("--scale", type=float, default=0.5, help="matching resolution relative to the images (0.5)")
-    parser.add_argument("--min-depth", type=float, default=None, help="nearest depth searched, metres (1.5)")
-    parser.add_argument("--max-depth", type=float, default=None, help="farthest depth kept, metres (80)")
-    parser.add_argument("--workers", type=int, default=None, help="parallel worker processes (default: all CPUs)")
+    parser.add_argument("--scale", type=number(0, 2, lo_open=True), default=0.5,
+                        help="matching resolution relative to the images (0.5)")
+    parser.add_argument("--min-depth", type=number(0, 1e4, lo_open=True), default=None,
+                        help="nearest depth searched, metres (1.5)")
+    parser.add_argument("--max-depth", type=number(0, 1e5, lo_open=True), default=None,
+                        help="farthest depth kept, metres (80)")
+    parser.add_argument("--workers", type=integer(0, 4096), default=None,
+                        help="parallel worker processes (default: all CPUs)")
     parser.add_argument("--engine", choices=("local", "ray"), default="local", help="local processes or Ray actors")
     parser.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray instance)")
     parser.add_argument("--scene", help="scene (zarr group) name in the cache (default: from the rig or DIR)")
+    parser.add_argument("--repair", action="store_true", help="read every chunk of the cached frames and rebuild "
+                        "the damaged ones (a resume always rebuilds frames whose shards are missing)")
+    parser.add_argument("--wait", type=number(0, 86400), default=0.0, metavar="SECONDS",
+                        help="wait this long for another build writing the same cache (default: refuse at once)")
 
 
 def _scene_from_location(location: str) -> str | None:
@@ -70,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         named = rig.extra.get("scene") or _scene_from_location(args.dir)
         scene = sanitize_scene_name(str(named)) if named else default_scene_name(rig)
     report = build_cache(
-        rig, args.out, config, workers=workers, engine=args.engine, scene=str(scene), ray_address=args.ray_address
+        rig, args.out, config, workers=workers, engine=args.engine, scene=str(scene), ray_address=args.ray_address,
+        repair=args.repair, wait_s=args.wait,
     )
     print(report.line())
     return 0
