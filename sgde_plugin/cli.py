@@ -14,6 +14,8 @@ import os
 import signal
 import sys
 import traceback
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from .errors import InputError
 
@@ -41,6 +43,21 @@ def _raise_stopped(signum: int, frame) -> None:
     raise Stopped(signum)
 
 
+@contextmanager
+def stop_on_sigterm() -> Iterator[None]:
+    """Within the block SIGTERM raises `Stopped` in the main thread (as Ctrl-C raises KeyboardInterrupt),
+    so builds stop their workers and `finally` blocks run; elsewhere (not the main thread) a no-op."""
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_stopped)
+    except ValueError:  # not the main thread (an embedding application): leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser, one sub-parser per command module."""
     parser = OneLineParser(prog="sgde", description="Stereo Guided Depth Estimation tools.")
@@ -66,14 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the `sgde` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    previous = signal.getsignal(signal.SIGTERM)
     try:
-        signal.signal(signal.SIGTERM, _raise_stopped)
-    except ValueError:  # not the main thread (an embedding application): leave signals alone
-        previous = None
-    try:
-        code = args._run(args)
-        sys.stdout.flush()
+        with stop_on_sigterm():
+            code = args._run(args)
+            sys.stdout.flush()
     except InputError as exc:
         print(f"sgde {args.command}: {exc.line()}", file=sys.stderr)
         return 2
@@ -94,9 +107,6 @@ def main(argv: list[str] | None = None) -> int:
         first = (str(exc).strip().splitlines() or [""])[0][:300]
         print(f"sgde {args.command}: internal error: {type(exc).__name__}: {first}", file=sys.stderr)
         return 1
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
     return int(code or 0)
 
 

@@ -1,9 +1,9 @@
 """Worker processes that die with their parent (Linux: prctl PR_SET_PDEATHSIG), so killing `sgde prior`
 (even by kill -9, as a scheduler does) never leaves a fork server, workers or their memory behind.
 
-Importing this module arms the signal in the importing process: it is only ever named in the fork
-server's preload list (whose parent is the main process), and `die_with_parent()` is called by each
-worker (whose parent is the fork server). Elsewhere both are no-ops.
+Importing this module inside a fork server (it is in the fork server's preload list) arms the signal
+there, so the fork server dies with the main process; each worker (whose parent is the fork server)
+calls `die_with_parent()` itself. Imported anywhere else, the module does nothing.
 """
 
 from __future__ import annotations
@@ -26,9 +26,19 @@ def die_with_parent(sig: int = signal.SIGKILL) -> bool:
         return False
 
 
+def _in_fork_server() -> bool:
+    """True while `multiprocessing.forkserver.main` is on the stack (it imports its preload list)."""
+    frame = sys._getframe(1)
+    while frame is not None:
+        code = frame.f_code
+        if code.co_name == "main" and code.co_filename.replace("\\", "/").endswith("multiprocessing/forkserver.py"):
+            return True
+        frame = frame.f_back
+    return False
+
+
 def _arm_on_import() -> None:
-    # only in a fork server (its argv is `-c 'from multiprocessing.forkserver import main; ...'`)
-    if any("multiprocessing.forkserver" in a for a in sys.argv):
+    if _in_fork_server():
         die_with_parent()
 
 

@@ -56,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.dir)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
+    cache.check_frames(rig)  # the priors of another scene whose frames share ids are refused
     cached_cams = set(cache.cameras())
     missing = [c for c in rig.camera_names if c not in cached_cams]
     if missing:
