@@ -82,7 +82,10 @@ def _quiet_stdout() -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `sgde` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option, already reported on one line (2)
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         with stop_on_sigterm():
             code = args._run(args)

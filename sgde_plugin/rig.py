@@ -261,6 +261,10 @@ def read_rig_json(path: str | Path, root: Path | None = None) -> Rig:
         raise InputError(path, None, "file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"bad JSON ({exc})") from None
+    except RecursionError:
+        raise InputError(path, None, "bad JSON (nested too deeply)") from None
+    except OSError as exc:  # a folder named rig.json, no permission, ...
+        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
     try:
         return rig_from_dict(doc, root)
     except InputError as exc:
