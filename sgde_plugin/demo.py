@@ -77,9 +77,9 @@ def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
     """RigSequence at network size from the demo's own frames, its ground truth and its cached priors."""
     import torch
 
-    from .benchmarks.train_effect import RigSequence, lidar_pattern, overlap_masks
     from .cache import PriorCache
     from .cache.resample import resize_depth, resize_matrix, warp_image
+    from .nn.sequence import RigSequence, lidar_pattern, overlap_masks
 
     h, w = size
     cache = PriorCache(cache_path)
@@ -109,8 +109,8 @@ def _train_and_test(seq, steps: int, out: Path) -> tuple[list[dict], Path]:
     """Train the baseline and the prior net (input + L1) on all but the last frame; test on the last."""
     import torch
 
-    from .benchmarks.train_effect import evaluate, train_arm
     from .nn import DepthNet
+    from .nn.train import evaluate, train_arm
 
     frames = list(range(seq.images.shape[0]))
     train, test = frames[:-1], frames[-1:]

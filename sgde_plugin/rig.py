@@ -14,6 +14,7 @@ from .cameras import Camera, _matrix, intrinsics_from_dict
 from .errors import InputError
 from .geometry import ORTHONORMAL_TOL, rotation_error
 from .io import atomic_write_text, image_size, is_plain_name, read_depth_png, read_image, read_mask
+from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
 
 FORMAT = "sgde-rig/1"
 MAX_MOUNT_M = 1e3  # a camera mounted farther than this from the ego origin is a unit or typing error
@@ -22,8 +23,50 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 @dataclass(frozen=True, eq=False)
+class CameraCapture:
+    """One camera's own capture in a frame (`frames[].cameras.<name>`); None = take the frame's value."""
+
+    timestamp_us: int | None = None
+    ego_to_world: np.ndarray | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The `rig.json` entry: only the keys that are set."""
+        out: dict[str, Any] = {}
+        if self.timestamp_us is not None:
+            out["timestamp_us"] = int(self.timestamp_us)
+        if self.ego_to_world is not None:
+            out["ego_to_world"] = np.asarray(self.ego_to_world, dtype=np.float64).tolist()
+        return out
+
+
+def own_captures(timestamp_us: int, ego_to_world: np.ndarray,
+                 per_camera: Mapping[str, tuple[int, np.ndarray]]) -> dict[str, CameraCapture]:
+    """`Frame.cameras` from every camera's (time, ego pose): only what differs from the frame's own values."""
+    out = {}
+    for name, (ts, pose) in per_camera.items():
+        same_pose = np.array_equal(np.asarray(pose, dtype=np.float64), np.asarray(ego_to_world, dtype=np.float64))
+        cap = CameraCapture(None if ts == timestamp_us else int(ts), None if same_pose else np.asarray(pose, float))
+        if cap.timestamp_us is not None or cap.ego_to_world is not None:
+            out[name] = cap
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Capture:
+    """Where and when one camera took its image of a frame: time, ego pose then, camera pose in the world."""
+
+    timestamp_us: int
+    ego_to_world: np.ndarray  # the ego pose at this camera's capture time
+    camera_to_world: np.ndarray  # ego_to_world @ sensor_to_ego: camera coordinates -> world
+
+
+@dataclass(frozen=True, eq=False)
 class Frame:
-    """One time step: id, timestamp (microseconds), ego pose, and where its files are (not compared)."""
+    """One time step: id, timestamp (microseconds), ego pose, per-camera captures, and its files (not compared).
+
+    `cameras` holds the cameras whose capture time or ego pose differ from the frame's (sequential
+    capture, as on nuScenes); a camera without an entry was taken at the frame's time and pose.
+    """
 
     id: str
     timestamp_us: int
@@ -31,15 +74,32 @@ class Frame:
     images: Mapping[str, Path] = field(default_factory=dict)
     depths: Mapping[str, Path] = field(default_factory=dict)
     extra: Mapping[str, Any] = field(default_factory=dict)
+    cameras: Mapping[str, CameraCapture] = field(default_factory=dict)
+    lidar: LidarSweep | None = None  # the LiDAR sweep a reader found for ground truth; not serialised
+
+    def capture_time_us(self, camera: str) -> int:
+        """The time camera `camera` took its image of this frame (the frame's time unless given)."""
+        cap = self.cameras.get(camera)
+        return int(self.timestamp_us if cap is None or cap.timestamp_us is None else cap.timestamp_us)
+
+    def capture_ego_to_world(self, camera: str) -> np.ndarray:
+        """The ego pose when camera `camera` took its image of this frame (the frame's pose unless given)."""
+        cap = self.cameras.get(camera)
+        return np.asarray(self.ego_to_world if cap is None or cap.ego_to_world is None else cap.ego_to_world,
+                          dtype=np.float64)
 
     def to_dict(self) -> dict[str, Any]:
         """The frame's `rig.json` entry (unknown keys kept)."""
-        return {
+        out = {
             **dict(self.extra),
             "id": self.id,
             "timestamp_us": int(self.timestamp_us),
             "ego_to_world": np.asarray(self.ego_to_world, dtype=np.float64).tolist(),
         }
+        caps = {name: cap.to_dict() for name, cap in self.cameras.items()}
+        if caps:
+            out["cameras"] = caps
+        return out
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Frame) and self.to_dict() == other.to_dict()
@@ -59,6 +119,7 @@ class Rig:
     root: Path | None = None
     masks: Mapping[str, Path] = field(default_factory=dict)
     extra: Mapping[str, Any] = field(default_factory=dict)
+    lidar_config: LidarDepthConfig = field(default_factory=LidarDepthConfig)  # how LiDAR sweeps become depth
 
     # --- look-ups ---------------------------------------------------------------------------
     @property
@@ -80,6 +141,16 @@ class Rig:
                 return fr
         raise KeyError(frame_id)
 
+    def capture(self, frame: str | Frame, camera: str) -> Capture:
+        """Camera `camera`'s capture in a frame (id or Frame): its time, the ego pose then, its pose in the world.
+
+        `camera_to_world = ego_to_world(frame, camera) @ sensor_to_ego(camera)`; everything that relates two
+        cameras of one frame (rectification, triangulation, back-projection, LiDAR projection) uses it.
+        """
+        fr = frame if isinstance(frame, Frame) else self.frame(frame)
+        ego = fr.capture_ego_to_world(camera)
+        return Capture(fr.capture_time_us(camera), ego, ego @ self.camera(camera).sensor_to_ego)
+
     def load_image(self, frame_id: str, camera: str) -> np.ndarray:
         """RGB uint8 image (H, W, 3) of one camera in one frame."""
         path = self.frame(frame_id).images.get(camera)
@@ -90,9 +161,15 @@ class Rig:
     def load_depth(self, frame_id: str, camera: str) -> np.ndarray | None:
         """Ground-truth depth in metres (0 = none) in the camera's convention, or None when the rig has none.
 
-        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera.
+        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera;
+        a frame's LiDAR sweep (nuScenes, DDAD) is projected into the camera at its own capture pose
+        (`sgde_plugin.lidar`, settings `lidar_config`), under the camera's mask.
         """
-        path = self.frame(frame_id).depths.get(camera)
+        frame = self.frame(frame_id)
+        path = frame.depths.get(camera)
+        if path is None and frame.lidar is not None:
+            return sweep_depth(frame.lidar, self.camera(camera), self.capture(frame, camera).camera_to_world,
+                               self.load_mask(camera), self.lidar_config)
         if path is None:
             return None
         if Path(path).suffix.lower() in (".tif", ".tiff"):
@@ -150,6 +227,13 @@ def ring_pairs(ring: list[str] | tuple[str, ...]) -> tuple[tuple[str, str], ...]
     return tuple((ring[i], ring[(i + 1) % n]) for i in range(n))
 
 
+def ring_subset_pairs(ring: tuple[str, ...] | list[str], present: tuple[str, ...] | list[str]
+                      ) -> tuple[tuple[str, str], ...]:
+    """Adjacent pairs of a closed ring that a subset of its cameras still forms (both cameras present)."""
+    keep = set(present)
+    return tuple(p for p in ring_pairs(ring) if p[0] in keep and p[1] in keep)
+
+
 def _transform(entry: dict, key: str, where: str, required: bool = True, max_m: float = MAX_WORLD_M) -> np.ndarray:
     if key not in entry and not required:
         return np.eye(4)
@@ -163,6 +247,25 @@ def _transform(entry: dict, key: str, where: str, required: bool = True, max_m: 
         raise InputError(None, f"{where}.{key}", f"translation of {np.linalg.norm(T[:3, 3]):.3g} m is absurd "
                          f"(more than {max_m:g} m)")
     return T
+
+
+def _captures(doc: Any, where: str, names: set[str]) -> dict[str, CameraCapture]:
+    """Parse `frames[].cameras` (camera -> {timestamp_us, ego_to_world}); every key optional."""
+    if not isinstance(doc, dict):
+        raise InputError(None, where, "not an object mapping camera names to captures")
+    out = {}
+    for name, entry in doc.items():
+        here = f"{where}.{name}"
+        if name not in names:
+            raise InputError(None, here, f"camera {name!r} is not in the rig")
+        if not isinstance(entry, dict):
+            raise InputError(None, here, "not an object")
+        ts = entry.get("timestamp_us")
+        if ts is not None and (not isinstance(ts, int) or isinstance(ts, bool)):
+            raise InputError(None, f"{here}.timestamp_us", "not an integer")
+        pose = _transform(entry, "ego_to_world", here) if "ego_to_world" in entry else None
+        out[name] = CameraCapture(ts, pose)
+    return out
 
 
 def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
@@ -231,7 +334,7 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
         raise InputError(None, "frames", "not a list")
     frames: list[Frame] = []
     seen: set[str] = set()
-    known = {"id", "timestamp_us", "ego_to_world"}
+    known = {"id", "timestamp_us", "ego_to_world", "cameras"}
     for i, entry in enumerate(frames_doc):
         where = f"frames[{i}]"
         if not isinstance(entry, dict):
@@ -246,8 +349,9 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
         if not isinstance(ts, int) or isinstance(ts, bool):
             raise InputError(None, f"{where}.timestamp_us", "not an integer")
         pose = _transform(entry, "ego_to_world", f"frames[{fid}]", required=False)
+        captures = _captures(entry.get("cameras", {}), f"frames[{fid}].cameras", names)
         extra = {k: v for k, v in entry.items() if k not in known}
-        frames.append(Frame(fid, ts, pose, extra=extra))
+        frames.append(Frame(fid, ts, pose, extra=extra, cameras=captures))
     extra = {k: v for k, v in doc.items() if k not in ("format", "cameras", "ring", "pairs", "frames")}
     return Rig(tuple(cameras), pairs, tuple(frames), ring, root, {}, extra)
 
@@ -340,14 +444,18 @@ def load_frame_images(rig: Rig, frame_id: str) -> dict[str, np.ndarray]:
 
 __all__ = [
     "FORMAT",
+    "Capture",
+    "CameraCapture",
     "Frame",
     "Rig",
     "attach_files",
     "check_folder_files",
     "load_frame_images",
+    "own_captures",
     "read_rig_folder",
     "read_rig_json",
     "rig_from_dict",
     "ring_pairs",
+    "ring_subset_pairs",
     "write_rig_json",
 ]

@@ -205,3 +205,39 @@ def test_defects_are_one_line_exit_2(defect, small_scene: Path, tmp_path: Path,
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("sgde validate: ") and "Traceback" not in err
     assert expected in err, err
+
+
+def test_each_camera_keeps_its_own_datum_time_and_pose(ddad_root: tuple[Path, dict]) -> None:
+    root, truths = ddad_root
+    rig = load_rig(root / "000150")
+    truth = truths["000150"]
+    names = [*sorted(RING), "LIDAR"]
+    for k, fr in enumerate(rig.frames):
+        for cam in rig.cameras:
+            cap = rig.capture(fr.id, cam.name)
+            assert cap.timestamp_us == T0 + 100_000 * k + 1_000 * names.index(cam.name)
+            np.testing.assert_allclose(cap.camera_to_world, ego_at(k) @ truth["cameras"][cam.name][0], atol=1e-9)
+        assert "CAMERA_01" not in fr.cameras and fr.cameras["CAMERA_09"].timestamp_us - fr.timestamp_us == 5_000
+
+
+def test_partial_rig_loads_the_cameras_it_has(tmp_path: Path) -> None:
+    folder = tmp_path / "000007"
+    write_scene(folder, n=2, images=False)
+    path = next(folder.glob("scene_*.json"))
+    doc = json.loads(path.read_text())
+    front = {sha("datum", folder.name, c, k) for c in ("CAMERA_01", "CAMERA_05", "CAMERA_06", "LIDAR")
+             for k in range(2)}
+    for s in doc["samples"]:
+        s["datum_keys"] = [k for k in s["datum_keys"] if k in front]
+    path.write_text(json.dumps(doc))
+    rig = load_rig(folder)
+    assert rig.camera_names == ["CAMERA_01", "CAMERA_06", "CAMERA_05"] and rig.ring is None
+    assert rig.pairs == (("CAMERA_01", "CAMERA_06"), ("CAMERA_05", "CAMERA_01"))
+    assert rig.to_dict()["pairs"] == [["CAMERA_01", "CAMERA_06"], ["CAMERA_05", "CAMERA_01"]]
+    # two cameras that are not adjacent in the ring make no rig
+    for s in doc["samples"]:
+        s["datum_keys"] = [k for k in s["datum_keys"] if k in {sha("datum", folder.name, c, i)
+                                                              for c in ("CAMERA_01", "CAMERA_09") for i in range(2)}]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="no two adjacent ring cameras"):
+        load_rig(folder)

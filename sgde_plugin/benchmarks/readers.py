@@ -35,12 +35,66 @@ def _tok(kind: int, i: int) -> str:
     return f"{kind:x}{i:031x}"
 
 
+_T_BASE = 1_532_402_927_000_000
+
+
 def _channel_rows(channel: str, k: int) -> int:
     if channel in CAMERAS:
         return 6
     if channel == "LIDAR_TOP":
         return 10
     return 6 + (k + RADARS.index(channel)) % 2
+
+
+def _scene_rows(s: int, channels: tuple[str, ...], sensors: list[dict]) -> tuple[dict, list[dict], dict, list[dict]]:
+    """(log, calibrated_sensor rows, scene row, sample rows) of generated scene `s`."""
+    log = {"token": _tok(9, s), "logfile": f"n015-2018-07-24-11-22-45+0800-{s}", "vehicle": "n015",
+           "date_captured": "2018-07-24", "location": "singapore-onenorth"}
+    calibs = []
+    for ci, c in enumerate(channels):
+        row = {"token": _tok(14, s * len(channels) + ci), "sensor_token": sensors[ci]["token"],
+               "translation": [1.70079, 0.01594, 1.51095],
+               "rotation": [0.4998015, -0.5030316, 0.4997798, -0.4973708], "camera_intrinsic": []}
+        if c in CAMERAS:
+            row["camera_intrinsic"] = [[1266.417, 0.0, 816.267], [0.0, 1266.417, 491.507], [0.0, 0.0, 1.0]]
+        calibs.append(row)
+    t0 = _T_BASE + s * 100_000_000
+    stoks = [_tok(12, s * SAMPLES_PER_SCENE + k) for k in range(SAMPLES_PER_SCENE)]
+    scene = {"token": _tok(13, s), "log_token": _tok(9, s), "nbr_samples": SAMPLES_PER_SCENE,
+             "first_sample_token": stoks[0], "last_sample_token": stoks[-1],
+             "name": f"scene-{s + 1:04d}", "description": "generated"}
+    samples = [{"token": st, "timestamp": t0 + 500_000 * k, "prev": stoks[k - 1] if k else "",
+                "next": stoks[k + 1] if k + 1 < len(stoks) else "", "scene_token": _tok(13, s)}
+               for k, st in enumerate(stoks)]
+    return log, calibs, scene, samples
+
+
+def _channel_json(c: str, t0: int, stoks: list[str], cal_token: str, start: int,
+                  first: bool) -> tuple[str, str, int]:
+    """(sample_data text, ego_pose text, row count) of one channel of one scene, rows numbered from `start`."""
+    ext, (w, h) = ("jpg", (1600, 900)) if c in CAMERAS else ("pcd.bin", (0, 0))
+    plan = [(t0 + 500_000 * k + 12_000 + j * (500_000 // n), j == 0, stoks[k] if j == 0 else
+             stoks[min(k + 1, len(stoks) - 1)])
+            for k in range(SAMPLES_PER_SCENE) for n in [_channel_rows(c, k)] for j in range(n)]
+    parts, eparts = [], []
+    for i, (t, key, st) in enumerate(plan):
+        idx = start + i
+        folder_name = "samples" if key else "sweeps"
+        prev = _tok(10, idx - 1) if i else ""
+        nxt = _tok(10, idx + 1) if i + 1 < len(plan) else ""
+        parts.append(
+            f'{"" if first and i == 0 else ","}{{\n"token": "{_tok(10, idx)}",\n"sample_token": "{st}",\n'
+            f'"ego_pose_token": "{_tok(11, idx)}",\n"calibrated_sensor_token": "{cal_token}",\n'
+            f'"timestamp": {t},\n"fileformat": "{ext}",\n"is_key_frame": {"true" if key else "false"},\n'
+            f'"height": {h},\n"width": {w},\n'
+            f'"filename": "{folder_name}/{c}/n015-2018-07-24-11-22-45+0800__{c}__{t}.{ext}",\n'
+            f'"prev": "{prev}",\n"next": "{nxt}"\n}}\n')
+        x = 411.3 + 0.000004 * (t - t0)
+        eparts.append(
+            f'{"" if first and i == 0 else ","}{{\n"token": "{_tok(11, idx)}",\n"timestamp": {t},\n'
+            f'"rotation": [\n0.5720320396729045,\n-0.0016977771610471074,\n0.011798001930183783,\n'
+            f'-0.8201446642457809\n],\n"translation": [\n{x!r},\n1180.8932498976914,\n0.0\n]\n}}\n')
+    return "".join(parts), "".join(eparts), len(plan)
 
 
 def write_tables(root: Path, rows: int, version: str = "v1.0-trainval") -> dict:
@@ -53,60 +107,23 @@ def write_tables(root: Path, rows: int, version: str = "v1.0-trainval") -> dict:
                 c.split("_")[0].lower()} for i, c in enumerate(channels)]
     calibs, scene_rows, samples, logs = [], [], [], []
     n_sd = 0
-    t_base = 1_532_402_927_000_000
     with open(folder / "sample_data.json", "w", encoding="utf-8") as sd_file, \
             open(folder / "ego_pose.json", "w", encoding="utf-8") as ego_file:
         sd_file.write("[\n")
         ego_file.write("[\n")
-        first = True
         for s in range(scenes):
-            logs.append({"token": _tok(9, s), "logfile": f"n015-2018-07-24-11-22-45+0800-{s}", "vehicle": "n015",
-                         "date_captured": "2018-07-24", "location": "singapore-onenorth"})
-            cal = {}
+            log, cal_rows, scene, scene_samples = _scene_rows(s, channels, sensors)
+            logs.append(log)
+            calibs.extend(cal_rows)
+            scene_rows.append(scene)
+            samples.extend(scene_samples)
+            stoks = [row["token"] for row in scene_samples]
             for ci, c in enumerate(channels):
-                cal[c] = _tok(14, s * len(channels) + ci)
-                row = {"token": cal[c], "sensor_token": sensors[ci]["token"],
-                       "translation": [1.70079, 0.01594, 1.51095],
-                       "rotation": [0.4998015, -0.5030316, 0.4997798, -0.4973708], "camera_intrinsic": []}
-                if c in CAMERAS:
-                    row["camera_intrinsic"] = [[1266.417, 0.0, 816.267], [0.0, 1266.417, 491.507], [0.0, 0.0, 1.0]]
-                calibs.append(row)
-            t0 = t_base + s * 100_000_000
-            stoks = [_tok(12, s * SAMPLES_PER_SCENE + k) for k in range(SAMPLES_PER_SCENE)]
-            scene_rows.append({"token": _tok(13, s), "log_token": _tok(9, s), "nbr_samples": SAMPLES_PER_SCENE,
-                               "first_sample_token": stoks[0], "last_sample_token": stoks[-1],
-                               "name": f"scene-{s + 1:04d}", "description": "generated"})
-            for k, st in enumerate(stoks):
-                samples.append({"token": st, "timestamp": t0 + 500_000 * k, "prev": stoks[k - 1] if k else "",
-                                "next": stoks[k + 1] if k + 1 < len(stoks) else "", "scene_token": _tok(13, s)})
-            for c in channels:
-                ext, (w, h) = ("jpg", (1600, 900)) if c in CAMERAS else ("pcd.bin", (0, 0))
-                plan = [(t0 + 500_000 * k + 12_000 + j * (500_000 // n), j == 0, stoks[k] if j == 0 else
-                         stoks[min(k + 1, len(stoks) - 1)])
-                        for k in range(SAMPLES_PER_SCENE) for n in [_channel_rows(c, k)] for j in range(n)]
-                start = n_sd
-                parts, eparts = [], []
-                for i, (t, key, st) in enumerate(plan):
-                    idx = start + i
-                    folder_name = "samples" if key else "sweeps"
-                    prev = _tok(10, idx - 1) if i else ""
-                    nxt = _tok(10, idx + 1) if i + 1 < len(plan) else ""
-                    parts.append(
-                        f'{"" if first and i == 0 else ","}{{\n"token": "{_tok(10, idx)}",\n"sample_token": "{st}",\n'
-                        f'"ego_pose_token": "{_tok(11, idx)}",\n"calibrated_sensor_token": "{cal[c]}",\n'
-                        f'"timestamp": {t},\n"fileformat": "{ext}",\n"is_key_frame": {"true" if key else "false"},\n'
-                        f'"height": {h},\n"width": {w},\n'
-                        f'"filename": "{folder_name}/{c}/n015-2018-07-24-11-22-45+0800__{c}__{t}.{ext}",\n'
-                        f'"prev": "{prev}",\n"next": "{nxt}"\n}}\n')
-                    x = 411.3 + 0.000004 * (t - t0)
-                    eparts.append(
-                        f'{"" if first and i == 0 else ","}{{\n"token": "{_tok(11, idx)}",\n"timestamp": {t},\n'
-                        f'"rotation": [\n0.5720320396729045,\n-0.0016977771610471074,\n0.011798001930183783,\n'
-                        f'-0.8201446642457809\n],\n"translation": [\n{x!r},\n1180.8932498976914,\n0.0\n]\n}}\n')
-                first = False
-                n_sd += len(plan)
-                sd_file.write("".join(parts))
-                ego_file.write("".join(eparts))
+                sd_text, ego_text, n = _channel_json(c, _T_BASE + s * 100_000_000, stoks, cal_rows[ci]["token"],
+                                                     n_sd, n_sd == 0)
+                n_sd += n
+                sd_file.write(sd_text)
+                ego_file.write(ego_text)
         sd_file.write("]\n")
         ego_file.write("]\n")
     for name, table in (("scene", scene_rows), ("sample", samples), ("sensor", sensors),

@@ -18,52 +18,31 @@ truth, LiDAR-like training depth, prior and its validity, per camera per frame, 
 for Dep Con). Scenes come from `sgde_plugin.synth`; priors from the project's prior pipeline
 (`sgde_plugin.stereo`, SGBM with true extrinsics), or on request from the ground truth restricted
 to the true overlap of adjacent cameras with stereo-like noise. The output says which was used.
+
+Each arm also reports the downstream effect on a VoxFormer-style stage 1: occupancy IoU / precision /
+recall of its depth against the exact occupancy of the test frames, on the Occ3D-nuScenes grid and on
+VoxFormer's grid (`occ_<grid>_<metric>`, see `benchmarks.occupancy`).
 """
 
 from __future__ import annotations
 
-import copy
-import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from ..cameras import Camera
-from ..geometry import invert_transform
-from ..metrics import average_metrics, dep_con_terms, depth_metrics
-from ..nn import DepthNet, PriorL1Loss
+from ..metrics import depth_metrics
+from ..nn import DepthNet
+from ..nn.sequence import RigSequence, lidar_pattern, overlap_masks
+from ..nn.train import MAX_DEPTH_EVAL, SUPERVISED_ARMS, arm_nets, evaluate, train_arm
 from ..rig import Frame, Rig, ring_pairs
-from ..stereo.evaluate import true_overlap
 from ..stereo.pipeline import PriorBuilder, PriorConfig
 from ..synth.presets import preset_cameras
 from ..synth.render import render
 from ..synth.world import build_world
-
-MAX_DEPTH_EVAL = 80.0  # nuScenes evaluation cap
-LIDAR_POSITION = np.array([0.94, 0.0, 1.84])  # roof LiDAR of nuScenes, ego frame
-LIDAR_BEAMS_DEG = np.linspace(-30.67, 10.67, 32)  # 32-beam spinning LiDAR
-LIDAR_RANGE_M = 70.0
-
-
-@dataclass
-class RigSequence:
-    """Frames of a surround rig at network resolution; arrays are [frames, cameras, H, W(, 3)]."""
-
-    cameras: list[Camera]
-    pairs: list[tuple[str, str]]
-    images: np.ndarray  # uint8 RGB
-    depth: np.ndarray  # float32 dense ground truth (evaluation), 0 = none
-    supervision: np.ndarray  # float32 LiDAR-like training depth, 0 = none
-    prior: np.ndarray  # float32 metres, 0 = none
-    valid: np.ndarray  # bool prior validity
-    overlap: np.ndarray  # bool: pixel seen by an adjacent camera (true geometry)
-    scene_source: str = ""
-    prior_source: str = ""
-
+from .occupancy import occupancy_eval, occupancy_table
 
 # --- cameras ------------------------------------------------------------------------------------
 
@@ -90,23 +69,6 @@ def noisy_overlap_prior(
     noisy = np.where(outlier, z * rng.uniform(0.5, 2.0, size=z.shape), noisy)
     valid &= noisy > 0.5
     return np.where(valid, noisy, 0.0).astype(np.float32), valid
-
-
-def lidar_pattern(depth: np.ndarray, camera: Camera) -> np.ndarray:
-    """Pixels a 32-beam roof LiDAR would return for (LiDAR-like sparse supervision): bool [H,W]."""
-    model = camera.intrinsics
-    rays, ok = model.ray_grid()
-    d = torch.as_tensor(depth.astype(np.float64))
-    pts = rays * (d / rays[..., 2].clamp(min=1e-9))[..., None] if not model.depth_is_range else rays * d[..., None]
-    T = torch.as_tensor(camera.sensor_to_ego)
-    p = (pts.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]).numpy() - LIDAR_POSITION
-    rng_m = np.linalg.norm(p, axis=1)
-    elev = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
-    nearest = np.abs(elev[:, None] - LIDAR_BEAMS_DEG[None]).min(1)
-    pixel_deg = math.degrees(1.0 / float(model.K[1, 1])) if hasattr(model, "K") else 0.5
-    hit = (nearest <= 0.5 * pixel_deg * np.maximum(1.0, rng_m / np.maximum(depth.reshape(-1), 1e-6)))
-    hit &= (depth.reshape(-1) > 0) & (rng_m <= LIDAR_RANGE_M) & ok.reshape(-1).numpy()
-    return hit.reshape(depth.shape)
 
 
 def thin_hits(hits: np.ndarray, density: float, rng: np.random.Generator) -> np.ndarray:
@@ -141,17 +103,6 @@ def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray:
         maps = builder.build({c.name: images[k, i] for i, c in enumerate(cameras)})
         for i, c in enumerate(cameras):
             out[k, i] = maps[c.name].depth
-    return out
-
-
-def overlap_masks(depth: np.ndarray, cameras: list[Camera]) -> np.ndarray:
-    """True overlap per camera [N,H,W]: pixels an adjacent camera sees unoccluded (the prior
-    evaluation's definition)."""
-    n = len(cameras)
-    out = np.zeros(depth.shape, bool)
-    for i in range(n):
-        for j in ((i - 1) % n, (i + 1) % n):
-            out[i] |= true_overlap(cameras[i], depth[i], cameras[j], depth[j])
     return out
 
 
@@ -210,94 +161,7 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
     )
 
 
-# --- training and evaluation --------------------------------------------------------------------
-
-def _tensors(seq: RigSequence, frames: list[int]) -> tuple[torch.Tensor, ...]:
-    """[F*N, C, H, W] tensors: rgb in [0, 1], supervision, prior, valid."""
-    idx = np.asarray(frames)
-    rgb = torch.from_numpy(seq.images[idx]).float().div(255).permute(0, 1, 4, 2, 3).flatten(0, 1)
-    sup = torch.from_numpy(seq.supervision[idx]).flatten(0, 1)[:, None]
-    prior = torch.from_numpy(seq.prior[idx]).flatten(0, 1)[:, None]
-    valid = torch.from_numpy(seq.valid[idx]).flatten(0, 1)[:, None]
-    return rgb, sup, prior, valid
-
-
-def supervised_loss(out: dict, gt: torch.Tensor, scales: tuple[int, ...]) -> torch.Tensor:
-    """Mean over scales of the L1 of log depth against sparse ground truth (outputs upsampled)."""
-    mask = gt > 0
-    total = gt.new_zeros(())
-    for s in scales:
-        d = F.interpolate(out[("depth", s)], size=gt.shape[-2:], mode="bilinear", align_corners=False)
-        total = total + (torch.log(d[mask]) - torch.log(gt[mask])).abs().mean()
-    return total / len(scales)
-
-
-def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: int, seed: int,
-              prior_weight: float | None, lr: float = 2e-4) -> float:
-    """Train in place for `steps` steps of one frame (all cameras); returns seconds spent."""
-    rgb, sup, prior, valid = _tensors(seq, train_frames)
-    n = len(seq.cameras)
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=[int(steps * 0.75)], gamma=0.2)
-    prior_loss = PriorL1Loss(weight=prior_weight) if prior_weight else None
-    order = np.random.default_rng(seed).integers(0, len(train_frames), size=steps)
-    net.train()
-    t0 = time.perf_counter()
-    for k in order:
-        sl = slice(int(k) * n, (int(k) + 1) * n)
-        out = net(rgb[sl], prior[sl] if net.use_prior else None, valid[sl] if net.use_prior else None)
-        loss = supervised_loss(out, sup[sl], net.scales)
-        if prior_loss is not None:
-            loss = loss + sum(prior_loss(out[("depth", s)], prior[sl], valid[sl]) for s in net.scales) / len(net.scales)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-    return time.perf_counter() - t0
-
-
-def evaluate(net: DepthNet, seq: RigSequence, frames: list[int], paste_prior: bool = False) -> dict[str, float]:
-    """Per-image depth metrics (dense ground truth <= 80 m), Abs Rel inside / outside the overlap,
-    and Dep Con pooled over all adjacent pairs and frames. ``paste_prior`` replaces the prediction by
-    the prior wherever the prior is valid (the most a purely local use of the prior can give)."""
-    net.eval()
-    n = len(seq.cameras)
-    rows, inside, outside = [], [], []
-    dc_sum, dc_n = 0.0, 0
-    with torch.no_grad():
-        for k in frames:
-            rgb, _, prior, valid = _tensors(seq, [k])
-            pred = net.predict(rgb, prior if net.use_prior else None, valid if net.use_prior else None)
-            pred = pred[:, 0].numpy().astype(np.float64)
-            if paste_prior:
-                pred = np.where(seq.valid[k], seq.prior[k], pred)
-            gt = seq.depth[k]
-            for i in range(n):
-                rows.append(depth_metrics(pred[i], gt[i], max_depth=MAX_DEPTH_EVAL))
-                inside.append(depth_metrics(pred[i], gt[i], mask=seq.overlap[k, i], max_depth=MAX_DEPTH_EVAL))
-                outside.append(depth_metrics(pred[i], gt[i], mask=~seq.overlap[k, i], max_depth=MAX_DEPTH_EVAL))
-            cams = {c.name: c for c in seq.cameras}
-            names = [c.name for c in seq.cameras]
-            for a, b in seq.pairs:
-                ia, ib = names.index(a), names.index(b)
-                for x, y in ((ia, ib), (ib, ia)):
-                    rel = invert_transform(cams[names[x]].sensor_to_ego) @ cams[names[y]].sensor_to_ego
-                    s, m = dep_con_terms(pred[x], pred[y], gt[x], cams[names[x]], cams[names[y]], rel,
-                                         max_depth=MAX_DEPTH_EVAL)
-                    dc_sum, dc_n = dc_sum + s, dc_n + m
-    res = {k: v for k, v in average_metrics(rows).items() if k in ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1")}
-    res["abs_rel_overlap"] = _pooled_abs_rel(inside)
-    res["abs_rel_outside"] = _pooled_abs_rel(outside)
-    res["dep_con"] = dc_sum / dc_n if dc_n else math.nan
-    return res
-
-
-def _pooled_abs_rel(rows: list[dict]) -> float:
-    n = sum(r["n"] for r in rows)
-    return sum(r["abs_rel"] * r["n"] for r in rows if r["n"]) / n if n else math.nan
-
-
-ARMS = ("baseline", "+ input", "+ input & L1")
+ARMS = tuple(arm.name for arm in SUPERVISED_ARMS)
 
 
 def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test: int, validity: bool,
@@ -317,21 +181,19 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
                                   max_depth=MAX_DEPTH_EVAL)
     torch.manual_seed(seed)
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0, scales=(0, 1, 2, 3))
-    nets = {
-        "baseline": copy.deepcopy(init),
-        "+ input": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem),
-        "+ input & L1": DepthNet.with_prior_from(init, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem),
-    }
-    weights = {"baseline": None, "+ input": None, "+ input & L1": 0.005}
+    nets = arm_nets(init, SUPERVISED_ARMS, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem)
     results: dict[str, dict] = {}
-    for name in ARMS:
+    for arm in SUPERVISED_ARMS:
+        name = arm.name
         torch.manual_seed(seed)
-        train_s = train_arm(nets[name], seq, train_idx, steps, seed, weights[name], lr=lr)
+        train_s = train_arm(nets[name], seq, train_idx, steps, seed, arm.prior_weight, lr=lr)
         res = evaluate(nets[name], seq, test_idx)
+        res.update(occupancy_eval(nets[name], seq, test_idx))
         res["train_s"] = round(train_s, 1)
         res["prior_abs_rel"] = prior_quality["abs_rel"]
         if name == "baseline":
             res["pasted_abs_rel"] = evaluate(nets[name], seq, test_idx, paste_prior=True)["abs_rel"]
+            res.update({f"pasted_{k}": v for k, v in occupancy_eval(nets[name], seq, test_idx, True).items()})
         results[name] = res
         log(f"seed {seed} {name}: abs_rel {res['abs_rel']:.4f} dep_con {res['dep_con']:.4f} ({train_s:.0f} s)")
     return results, seq, test_idx
@@ -416,3 +278,4 @@ if __name__ == "__main__":
     out = run(fast="--fast" in sys.argv, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(json.dumps(out, indent=2))
     print(table(out))
+    print(occupancy_table(out["arms"]))

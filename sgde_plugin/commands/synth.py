@@ -8,14 +8,16 @@ from pathlib import Path
 from ..errors import InputError
 from .options import integer, number
 
-HELP = "render a synthetic street sequence (nuscenes, ddad or urban-fisheye rig) into an sgde-rig/1 folder"
+HELP = ("render a synthetic street sequence (nuscenes, ddad, urban-fisheye or a random rig of the seed) into an "
+        "sgde-rig/1 folder")
 
-PRESETS = ("nuscenes", "ddad", "urban-fisheye")
+PRESETS = ("nuscenes", "ddad", "urban-fisheye", "random")  # = synth.presets.PRESETS (kept light)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `sgde synth`."""
-    parser.add_argument("--preset", required=True, choices=PRESETS, help="camera rig")
+    parser.add_argument("--preset", required=True, choices=PRESETS,
+                        help="camera rig (random: 4-8 cameras drawn from --seed)")
     parser.add_argument("--frames", required=True, type=int, help="number of frames (10 Hz)")
     parser.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
     parser.add_argument("--seed", type=integer(0, 2**32 - 1), default=0,

@@ -16,9 +16,16 @@ Schema (TRI-ML/dgp, `dgp/proto/{scene,sample,image,geometry,identifiers}.proto`,
 
 Vehicle frame x forward, y left, z up and camera frame x right, y down, z forward, as ours. DGP's
 JSON parser also accepts lowerCamelCase names (`datumKeys`), so we do too. Frame ids are the sample's
-position in the scene ("000000"...); a frame's timestamp and ego pose come from CAMERA_01
-(ego_to_world = pose_WC(CAMERA_01) @ inverse(pose_VC(CAMERA_01))). DDAD images are undistorted;
-non-zero k1, k2, p1, p2, k3 become an OpenCV `dist`, a fisheye calibration is refused.
+position in the scene ("000000"...); a frame's timestamp and ego pose come from the reference camera
+(CAMERA_01, else the first ring camera present): ego_to_world = pose_WC(ref) @ inverse(pose_VC(ref)).
+Every other camera keeps its own datum's time and pose as its capture (`Frame.cameras`,
+ego_to_world(c) = pose_WC(c) @ inverse(pose_VC(c))): DDAD's cameras are synchronised, but its per-datum
+poses differ by a few millimetres. DDAD images are undistorted; non-zero k1, k2, p1, p2, k3 become an
+OpenCV `dist`, a fisheye calibration is refused.
+
+Partial rigs: a scene with only some of the six cameras (the front three, say) loads with the ring
+cameras its first sample has; its pairs are the adjacent ring pairs among them (`pairs`, no closed
+`ring`, unless all six are there). Every later sample must have the same cameras.
 """
 
 from __future__ import annotations
@@ -33,11 +40,13 @@ from ..cameras import Camera, intrinsics_from_dict
 from ..errors import InputError
 from ..geometry import invert_transform, make_transform, quaternion_to_rotation
 from ..io import image_size
-from ..rig import Frame, Rig, ring_pairs
+from ..lidar import LidarSweep
+from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
 from .jsonio import get, read_json
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
 REFERENCE = "CAMERA_01"
+LIDAR = "LIDAR"
 QUATERNION_TOL = 1e-3
 
 _RFC3339 = re.compile(
@@ -171,9 +180,13 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
                 raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not in data")
             name = _field(_field(d, "id", scene_path, f"data[key={key}]", dict), "name", scene_path,
                           f"data[key={key}].id", str).upper()
-            if name in RING:
+            if name in RING or name == LIDAR:
                 by_name[name] = (key, d)
-        for cam in RING:
+        if not frames_datums:
+            present = tuple(c for c in RING if c in by_name)
+            if not ring_subset_pairs(RING, present):
+                raise InputError(scene_path, where, f"has no two adjacent ring cameras ({', '.join(present)})")
+        for cam in present:
             if cam not in by_name:
                 raise InputError(scene_path, where, f"camera {cam} is missing")
         frames_datums.append(by_name)
@@ -193,7 +206,7 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
 
     cameras = []
     first = frames_datums[0]
-    for cam in RING:
+    for cam in present:
         if cam not in index:
             raise InputError(calib_path, "names", f"camera {cam} is missing")
         i = index[cam]
@@ -203,7 +216,8 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
         h = _field(image, "height", scene_path, f"data[key={key}].datum.image", int)
         K = _intrinsics(intr[i], w, h, calib_path, f"intrinsics[{i}]")
         cameras.append(Camera(cam, K, _pose(extr[i], calib_path, f"extrinsics[{i}]")))
-    ego_from_ref = invert_transform(cameras[0].sensor_to_ego)
+    reference = REFERENCE if REFERENCE in present else present[0]
+    lidar_mount = _pose(extr[index[LIDAR]], calib_path, f"extrinsics[{index[LIDAR]}]") if LIDAR in index else None
 
     frames = []
     for n, by_name in enumerate(frames_datums):
@@ -220,18 +234,50 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
                     raise InputError(scene_path, where, f"size {size[0]}x{size[1]} differs from the scene's first "
                                      f"sample ({cam.width}x{cam.height})")
                 _check_image(images[cam.name], cam, scene_path, f"{where}.filename")
-        key, d = by_name[REFERENCE]
-        ident = _field(d, "id", scene_path, f"data[key={key}]", dict)
-        ts = parse_timestamp_us(_field(ident, "timestamp", scene_path, f"data[key={key}].id"), scene_path,
-                                f"data[key={key}].id.timestamp")
-        image = _image(d, scene_path, key)
-        raw_pose = _field(image, "pose", scene_path, f"data[key={key}].datum.image", dict, default=None)
-        ego_to_world = np.eye(4)
-        if raw_pose is not None:
-            world_from_cam = _pose(raw_pose, scene_path, f"data[key={key}].datum.image.pose", zero_is_identity=True)
-            ego_to_world = world_from_cam @ ego_from_ref
-        frames.append(Frame(f"{n:06d}", ts, ego_to_world, images))
-    return Rig(tuple(cameras), ring_pairs(RING), tuple(frames), RING, folder, extra={"scene": folder.name})
+        captures = {cam.name: _capture(by_name[cam.name], cam, scene_path) for cam in cameras}
+        ts, ego_to_world = captures[reference]
+        lidar = _lidar_sweep(by_name.get(LIDAR), lidar_mount, folder, scene_path)
+        frames.append(Frame(f"{n:06d}", ts, ego_to_world, images, cameras=own_captures(ts, ego_to_world, captures),
+                            lidar=lidar))
+    ring = RING if present == RING else None
+    pairs = ring_pairs(RING) if ring else ring_subset_pairs(RING, present)
+    return Rig(tuple(cameras), pairs, tuple(frames), ring, folder, extra={"scene": folder.name})
+
+
+def _lidar_sweep(keyed: tuple[str, dict] | None, mount: np.ndarray | None, folder: Path, scene_path: Path
+                 ) -> LidarSweep | None:
+    """The sample's LIDAR datum as a sweep (file, mount, ego pose = pose_WL @ inverse(pose_VL), time)."""
+    if keyed is None or mount is None:
+        return None
+    key, d = keyed
+    where = f"data[key={key}]"
+    cloud = _field(_field(d, "datum", scene_path, where, dict), "point_cloud", scene_path, f"{where}.datum", dict,
+                   default=None)
+    if cloud is None:
+        return None
+    where = f"{where}.datum.point_cloud"
+    filename = _field(cloud, "filename", scene_path, where, str)
+    raw_pose = _field(cloud, "pose", scene_path, where, dict, default=None)
+    world_from_lidar = np.eye(4) if raw_pose is None else _pose(raw_pose, scene_path, f"{where}.pose",
+                                                               zero_is_identity=True)
+    ident = _field(d, "id", scene_path, f"data[key={key}]", dict)
+    ts = parse_timestamp_us(_field(ident, "timestamp", scene_path, f"data[key={key}].id"), scene_path,
+                            f"data[key={key}].id.timestamp")
+    return LidarSweep(folder / filename, "dgp_npz", mount, world_from_lidar @ invert_transform(mount), ts)
+
+
+def _capture(keyed: tuple[str, dict], cam: Camera, scene_path: Path) -> tuple[int, np.ndarray]:
+    """(timestamp, ego_to_world) of one camera datum: its own time, pose_WC @ inverse(pose_VC)."""
+    key, d = keyed
+    ident = _field(d, "id", scene_path, f"data[key={key}]", dict)
+    ts = parse_timestamp_us(_field(ident, "timestamp", scene_path, f"data[key={key}].id"), scene_path,
+                            f"data[key={key}].id.timestamp")
+    image = _image(d, scene_path, key)
+    raw_pose = _field(image, "pose", scene_path, f"data[key={key}].datum.image", dict, default=None)
+    if raw_pose is None:
+        return ts, np.eye(4)
+    world_from_cam = _pose(raw_pose, scene_path, f"data[key={key}].datum.image.pose", zero_is_identity=True)
+    return ts, world_from_cam @ invert_transform(cam.sensor_to_ego)
 
 
 def _image(d: dict, file: Path, key: str) -> dict:

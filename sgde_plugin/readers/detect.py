@@ -66,16 +66,9 @@ def _layout(path: Path) -> tuple[str, Path, str | None]:
     raise InputError(path, None, f"not a recognised rig layout ({EXPECTED})")
 
 
-def locate(path: str | Path, version: str | None = None, scene: str | None = None,
-           sweeps: bool = False) -> Location:
-    """Parse `PATH[::SELECTOR...]` plus keyword choices into a Location; InputError if they do not fit."""
-    base, *selectors = str(path).split(SEPARATOR)
-    layout, where, implied = _layout(Path(base))
-    if implied is not None:
-        if version not in (None, implied):
-            raise InputError(base, "version", f"path is version {implied!r}, {version!r} was asked for")
-        version = implied
-    known = nuscenes.versions(where) if layout == "nuscenes" else []
+def _apply_selectors(path: str | Path, layout: str, known: list[str], selectors: list[str],
+                     version: str | None, scene: str | None, sweeps: bool) -> tuple[str | None, str | None, bool]:
+    """(version, scene, sweeps) after the `::` selectors, each checked against the keyword choices."""
     for sel in selectors:
         if not sel:
             raise InputError(path, None, f"empty selector after {SEPARATOR!r}")
@@ -89,18 +82,39 @@ def locate(path: str | Path, version: str | None = None, scene: str | None = Non
             raise InputError(path, "scene", f"two scenes asked for ({scene}, {sel})")
         else:
             scene = sel
+    return version, scene, sweeps
+
+
+def _resolve_version(path: str | Path, base: str, layout: str, known: list[str], version: str | None) -> str | None:
+    """The nuScenes version to read (the only one, or the one asked for); None for other layouts."""
+    if layout != "nuscenes":
+        if version is not None:
+            raise InputError(path, "version", f"a {layout} layout has no versions")
+        return None
+    if version is None:
+        if len(known) != 1:
+            raise InputError(base, "version", f"holds {len(known)} versions ({', '.join(known)}); "
+                             f"pick one with PATH{SEPARATOR}VERSION")
+        return known[0]
+    if version not in known:
+        raise InputError(base, "version", f"no table folder {version!r} (found: {', '.join(known) or 'none'})")
+    return version
+
+
+def locate(path: str | Path, version: str | None = None, scene: str | None = None,
+           sweeps: bool = False) -> Location:
+    """Parse `PATH[::SELECTOR...]` plus keyword choices into a Location; InputError if they do not fit."""
+    base, *selectors = str(path).split(SEPARATOR)
+    layout, where, implied = _layout(Path(base))
+    if implied is not None:
+        if version not in (None, implied):
+            raise InputError(base, "version", f"path is version {implied!r}, {version!r} was asked for")
+        version = implied
+    known = nuscenes.versions(where) if layout == "nuscenes" else []
+    version, scene, sweeps = _apply_selectors(path, layout, known, selectors, version, scene, sweeps)
     if sweeps and layout != "nuscenes":
         raise InputError(path, "sweeps", "only nuScenes has sweeps")
-    if layout == "nuscenes":
-        if version is None:
-            if len(known) != 1:
-                raise InputError(base, "version", f"holds {len(known)} versions ({', '.join(known)}); "
-                                 f"pick one with PATH{SEPARATOR}VERSION")
-            version = known[0]
-        elif version not in known:
-            raise InputError(base, "version", f"no table folder {version!r} (found: {', '.join(known) or 'none'})")
-    elif version is not None:
-        raise InputError(path, "version", f"a {layout} layout has no versions")
+    version = _resolve_version(path, base, layout, known, version)
     if scene is not None and layout not in ("nuscenes", "ddad-root"):
         raise InputError(path, "scene", f"a {layout} layout holds one scene; no scene selector")
     if layout == "ddad-root" and scene is not None and not ddad.is_scene_folder(where / scene):

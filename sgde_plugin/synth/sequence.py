@@ -23,9 +23,10 @@ from ..cameras import Camera
 from ..geometry import make_transform, rodrigues
 from ..io import write_depth_png, write_image
 from ..rig import Frame, Rig, ring_pairs, write_rig_json
-from .presets import preset_cameras, preset_ring
+from .presets import preset_cameras, preset_ring, preset_world
+from .random_rig import random_rig
 from .render import render, rig_lod, torch_threads
-from .world import MAX_FRAMES, World, build_world
+from .world import MAX_FRAMES, World
 
 FRAME_RATE_HZ = 10.0
 
@@ -73,13 +74,15 @@ def _check(preset: str, frames: int, scale: float, pose_noise_deg: float, pose_n
 
 def _rigs(preset: str, frames: int, seed: int, scale: float, noise_deg: float, noise_m: float,
           world: World) -> tuple[Rig, Rig]:
-    cameras = preset_cameras(preset, scale)
-    ring = tuple(preset_ring(preset))
+    cameras = preset_cameras(preset, scale, seed)
+    ring = tuple(c.name for c in cameras)
     frame_list = tuple(
         Frame(frame_id(i), int(round(i * 1e6 / FRAME_RATE_HZ)), world.ego_pose(i / FRAME_RATE_HZ))
         for i in range(frames)
     )
     info = {"preset": preset, "seed": int(seed), "scale": float(scale), "frame_rate_hz": FRAME_RATE_HZ}
+    if preset == "random":
+        info["random_rig"] = random_rig(seed).summary()
     rig_true = Rig(tuple(cameras), ring_pairs(ring), frame_list, ring, extra={"synth": {**info, "extrinsics": "true"}})
     noisy = perturb_extrinsics(cameras, seed, noise_deg, noise_m)
     rig = rig_true.with_extrinsics(noisy).with_extra(
@@ -118,7 +121,7 @@ def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, 
                    pose_noise_m: float = 0.05, supersample: int = 1, workers: int | None = None) -> SynthSequence:
     """Render a sequence in memory (images and depths keyed by frame id, then camera name)."""
     _check(preset, frames, scale, pose_noise_deg, pose_noise_m)
-    world = build_world(seed)
+    world = preset_world(preset, seed)
     rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world)
     seq = SynthSequence(rig_true, rig, world)
 
@@ -143,7 +146,7 @@ def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, sc
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise FileExistsError(f"{out} exists and is not an empty folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    world = build_world(seed)
+    world = preset_world(preset, seed)
     rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:

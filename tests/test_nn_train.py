@@ -1,0 +1,100 @@
+"""The training loop of `sgde_plugin.nn.train`: arms, loss, steps, evaluation (~10 s)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from sgde_plugin.benchmarks.train_effect import load_sequence
+from sgde_plugin.nn import DepthNet
+from sgde_plugin.nn.train import (
+    SELF_SUPERVISED_ARMS,
+    SUPERVISED_ARMS,
+    arm_nets,
+    evaluate,
+    pooled_abs_rel,
+    supervised_loss,
+    train_arm,
+)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    torch.manual_seed(0)
+    return load_sequence([0, 1], (32, 56), seed=3, prior="overlap-noise", render_factor=2)
+
+
+def test_supervised_loss_against_hand_value():
+    gt = torch.zeros(1, 1, 4, 4)
+    gt[0, 0, 1, 1], gt[0, 0, 2, 3] = 1.0, 4.0
+    out = {("depth", 0): torch.full((1, 1, 4, 4), 2.0), ("depth", 1): torch.full((1, 1, 2, 2), 8.0)}
+    # scale 0: |log 2 - log 1|, |log 2 - log 4| -> log 2; scale 1 (upsampled constant 8): log 8 and log 2
+    expected = (math.log(2) + (math.log(8) + math.log(2)) / 2) / 2
+    assert float(supervised_loss(out, gt, (0, 1))) == pytest.approx(expected, rel=1e-6)
+
+
+def test_arm_nets_share_initial_weights_and_are_independent():
+    torch.manual_seed(0)
+    init = DepthNet(use_prior=False, scales=(0,)).eval()
+    nets = arm_nets(init, SELF_SUPERVISED_ARMS, validity=True, prior_max_depth=80.0)
+    assert list(nets) == ["baseline", "+ input", "+ L1", "+ input & L1"]
+    assert [n.use_prior for n in nets.values()] == [False, True, False, True]
+    rgb = torch.rand(1, 3, 32, 64)
+    with torch.no_grad():
+        ref = init.predict(rgb)
+        for net in nets.values():  # a zero prior leaves every arm computing what the initial net does
+            net.eval()
+            zero = torch.zeros(1, 1, 32, 64) if net.use_prior else None
+            assert (net.predict(rgb, zero) - ref).abs().max() <= 1e-6
+    with torch.no_grad():
+        nets["baseline"].decoder.heads["0"].bias.add_(1.0)
+    assert not torch.equal(nets["+ L1"].decoder.heads["0"].bias, nets["baseline"].decoder.heads["0"].bias)
+    assert [a.prior_weight for a in SUPERVISED_ARMS] == [None, None, 0.005]
+
+
+def test_evaluate_scores_a_known_prediction(seq):
+    class Scaled(torch.nn.Module):
+        """Predicts the ground truth times `factor`, frame after frame."""
+
+        use_prior = False
+
+        def __init__(self, factor):
+            super().__init__()
+            self.factor, self.calls = factor, 0
+
+        def predict(self, rgb, prior=None, valid=None):
+            k = self.calls
+            self.calls += 1
+            return torch.from_numpy(seq.depth[k] * self.factor)[:, None]
+
+    exact = evaluate(Scaled(1.0), seq, [0, 1])
+    assert exact["abs_rel"] < 1e-9 and exact["a1"] == 1.0
+    assert exact["dep_con"] < 0.03  # only the nearest-pixel rounding of the warp remains
+    scaled = evaluate(Scaled(0.9), seq, [0, 1])  # 0.9: no prediction reaches the 80 m cap
+    assert scaled["abs_rel"] == pytest.approx(0.1, abs=1e-6)
+    assert scaled["abs_rel_overlap"] == pytest.approx(0.1, abs=1e-6)
+    assert scaled["abs_rel_outside"] == pytest.approx(0.1, abs=1e-6)
+    assert pooled_abs_rel([{"abs_rel": 0.1, "n": 3}, {"abs_rel": 0.3, "n": 1}, {"abs_rel": math.nan, "n": 0}]) == \
+        pytest.approx(0.15)
+
+
+def test_train_arm_lowers_the_training_loss(seq):
+    torch.manual_seed(0)
+    net = DepthNet(use_prior=True, validity=True, min_depth=0.5, max_depth=100.0, scales=(0, 1))
+    from sgde_plugin.nn.train import frame_tensors
+
+    rgb, sup, prior, valid = frame_tensors(seq, [0])
+
+    def loss() -> float:
+        with torch.no_grad():
+            return float(supervised_loss(net(rgb, prior, valid), sup, net.scales))
+
+    before = loss()
+    seconds = train_arm(net, seq, [0], steps=25, seed=0, prior_weight=0.005, lr=1e-3)
+    after = loss()
+    assert seconds > 0
+    assert after < 0.5 * before, (before, after)
+    assert np.isfinite(after)
