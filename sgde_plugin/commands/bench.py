@@ -10,7 +10,7 @@ import platform
 import sys
 import time
 
-HELP = "run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export) and write one JSON"
+HELP = "run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export, learned); one JSON"
 
 # name on the command line -> module in sgde_plugin.benchmarks; the fast set is what `make bench` runs
 BENCHMARKS = {
@@ -22,8 +22,9 @@ BENCHMARKS = {
     "train-effect": "train_effect",
     "cache": "cache",
     "export": "export",
+    "learned": "learned",
 }
-SLOW = {"train-effect"}
+SLOW = {"train-effect", "learned"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
