@@ -59,7 +59,7 @@ class PriorCompute:
             self._builder = PriorBuilder(self.rig, self.config)
             masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
             self._masks = {c: m for c, m in masks.items() if m is not None} or None
-        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks)
+        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks, frame=frame_id)
         self.last_warning = self._builder.last_warning
         return {cam: (m.depth, m.confidence) for cam, m in maps.items()}
 
