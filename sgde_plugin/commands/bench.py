@@ -10,8 +10,8 @@ import platform
 import sys
 import time
 
-HELP = ("run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export, capture) and write "
-        "one JSON; "
+HELP = ("run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export, capture, learned) and "
+        "write one JSON; "
         "`sgde bench real DIR [--rig RIG.json ...]` scores the prior on real frames against LiDAR")
 
 # name on the command line -> module in sgde_plugin.benchmarks; the fast set is what `make bench` runs
@@ -25,8 +25,9 @@ BENCHMARKS = {
     "cache": "cache",
     "export": "export",
     "capture": "capture",
+    "learned": "learned",
 }
-SLOW = {"train-effect"}
+SLOW = {"train-effect", "learned"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

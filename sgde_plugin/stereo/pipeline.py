@@ -468,7 +468,7 @@ class PriorBuilder:
             inputs += self.matcher_inputs(plan, left, right)
             ranges += [plan.pair.max_disparity] * 2
         if hasattr(self.matcher, "counts"):
-            self.matcher.counts.update(pixels=0, valid=0, negative=0)
+            self.matcher.counts.update(finite=0, valid=0, negative=0)
         t0 = time.perf_counter()
         answers = match_many(inputs, ranges)
         t_each = (time.perf_counter() - t0 + t_warp) / len(self.plans)
@@ -483,9 +483,9 @@ class PriorBuilder:
             return None
         counts = getattr(self.matcher, "counts", None)
         name = self.config.matcher
-        if counts and counts["pixels"]:
-            if counts["negative"] > 0.5 * counts["pixels"]:
-                return (f"matcher {name} gave mostly negative disparities ({counts['negative'] / counts['pixels']:.0%}"
+        if counts and counts["finite"]:
+            if counts["negative"] > 0.5 * counts["finite"]:
+                return (f"matcher {name} gave mostly negative disparities ({counts['negative'] / counts['finite']:.0%}"
                         " of the pixels): is the flow sign right? (matcher_flow_output)")
             if counts["valid"] == 0:
                 return f"matcher {name} gave no valid disparity (check matcher_input_scale and matcher_flow_output)"
