@@ -560,9 +560,15 @@ class PriorCache:
         ci = s["camera_index"][camera]
         return s, fi, ci, s["cameras"][ci]
 
-    def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None,
+            min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(depth float32 metres, valid bool) at native size, or resized to size=(h, w) without
-        inventing depths (min-pool of valid values, then nearest)."""
+        inventing depths (min-pool of valid values, then nearest). With `min_confidence` > 0 only
+        values whose stored confidence (steps of 1/255) rounds to at least it (the rest read as no value)."""
+        if min_confidence > 0:
+            depth, _, conf = self.get_prior(frame_id, camera, size)
+            depth = np.where(conf >= np.float32(min_confidence - 0.5 / 255), depth, 0).astype(np.float32)
+            return depth, depth > 0
         s, fi, ci, cam = self._slot(frame_id, camera)
         depth = np.asarray(s["depth"][fi, ci, : cam.height, : cam.width], dtype=np.float32)
         if size is not None and tuple(size) != (cam.height, cam.width):

@@ -17,6 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "DIR/rig_true.json when present, else DIR's own rig)",
     )
     parser.add_argument("--max-depth", type=float, default=80.0, help="ground truth beyond this is ignored (80 m)")
+    parser.add_argument("--curve", action="store_true",
+                        help="also print coverage and Abs Rel at each confidence threshold (sparsification curve)")
+    parser.add_argument("--min-confidence", type=float, default=0.0,
+                        help="evaluate only prior values whose confidence reaches this (0-1, default 0: all)")
 
 
 def _truth_rig(rig, dir_arg: str, truth: str | None):
@@ -50,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from ..stereo.evaluate import PriorEvaluator, report_rows
     from ..tables import format_table
 
+    if not 0.0 <= args.min_confidence <= 1.0:
+        raise InputError(None, "--min-confidence", "must be between 0 and 1")
     rig = load_rig(args.dir)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
@@ -66,12 +72,14 @@ def run(args: argparse.Namespace) -> int:
     masks = {c: rig.load_mask(c) for c in rig.camera_names}
     evaluator = PriorEvaluator(rig_true, args.max_depth)
     for frame in progress(frames, desc="eval", total=len(frames)):
-        priors = {}
+        priors, confs = {}, {}
         for cam in rig.camera_names:
-            depth, valid = cache.get(frame.id, cam)
-            priors[cam] = depth * valid
+            depth, valid, conf = cache.get_prior(frame.id, cam)
+            keep = valid & (conf >= args.min_confidence - 0.5 / 255) if args.min_confidence > 0 else valid
+            priors[cam] = depth * keep
+            confs[cam] = conf
         gts = {cam: rig.load_depth(frame.id, cam) for cam in rig.camera_names}
-        evaluator.add(priors, gts, masks)
+        evaluator.add(priors, gts, masks, confs if args.curve else None)
     report = evaluator.result()
     report.update({"rig": str(args.dir), "cache": str(args.cache), "truth": truth_source,
                    "cache_fingerprint": cache.fingerprint})
@@ -83,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(pairs))
     print()
     print(format_table(overall))
+    if args.curve and report.get("curve"):
+        print()
+        print("sparsification (overall): prior values kept where confidence >= min_confidence")
+        print(format_table(report["curve"]))
     if args.json_out:
         atomic_write_text(args.json_out, json.dumps(_plain(report), indent=1, allow_nan=False) + "\n")
     return 0

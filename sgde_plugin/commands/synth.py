@@ -25,6 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rotation error of each camera in rig.json, degrees (default 1)")
     parser.add_argument("--pose-noise-m", type=float, default=0.05,
                         help="translation error of each camera in rig.json, metres (default 0.05)")
+    parser.add_argument("--ego-body", action="store_true",
+                        help="draw the car's glossy body into the cameras; true masks go to masks_true/")
     parser.add_argument("--supersample", type=int, default=1, help="k x k colour samples per pixel (default 1)")
 
 
@@ -46,6 +48,6 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, "--supersample", "must be between 1 and 4")
     path = write_synth(args.preset, args.frames, out, seed=args.seed, scale=args.scale,
                        pose_noise_deg=args.pose_noise_deg, pose_noise_m=args.pose_noise_m,
-                       supersample=args.supersample)
+                       supersample=args.supersample, ego_body=args.ego_body)
     print(f"wrote {path}: preset {args.preset}, {args.frames} frames, seed {args.seed}, scale {args.scale}")
     return 0

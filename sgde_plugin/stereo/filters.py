@@ -162,3 +162,18 @@ def normalize_image(image: np.ndarray, valid: np.ndarray, mode: str, sigma: floa
     out = np.clip(out, 1, 255)
     out[~valid] = 0
     return (out + 0.5).astype(np.uint8)
+
+
+def discontinuity_factor(disp: np.ndarray, valid: np.ndarray, jump_px: float, window: int = 7) -> np.ndarray:
+    """Per-pixel factor in (0, 1]: jump / (local disparity range) where that range exceeds `jump_px`.
+
+    Matches next to a depth discontinuity are the least reliable (foreground fattening, occlusion
+    edges, and a LiDAR that sees round the object from elsewhere); the range is taken over valid
+    disparities in a window x window neighbourhood.
+    """
+    k = np.ones((window, window), np.uint8)
+    d = disp.astype(np.float32)
+    hi = cv2.dilate(np.where(valid, d, 0).astype(np.float32), k)
+    lo = cv2.erode(np.where(valid, d, np.float32(1e6)).astype(np.float32), k)
+    rng = np.where(valid, hi - lo, 0)
+    return np.where(rng > jump_px, jump_px / np.maximum(rng, 1e-6), 1.0).astype(np.float32)

@@ -21,6 +21,7 @@ from ..rig import Rig
 from .backproject import BackProjection, backprojection, fuse_into
 from .filters import (
     NORMALIZATIONS,
+    discontinuity_factor,
     grey_float,
     lr_check,
     normalize_image,
@@ -89,6 +90,8 @@ class PriorConfig:
     max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
     max_elevation_deg: float = 50.0
     fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
+    confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
+    edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
     normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
     normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
 
@@ -370,7 +373,9 @@ class PriorBuilder:
             conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
             if cfg.min_texture > 0:  # rows without x-structure are ambiguous
                 conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)
-            conf *= disp / (disp + 2.0)  # small disparities (far points) give uncertain depth
+            conf *= disp / (disp + cfg.confidence_disparity_px)  # small disparities give uncertain depth
+            if cfg.edge_jump_px > 0:
+                conf *= discontinuity_factor(disp, conf > 0, cfg.edge_jump_px)
             remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
