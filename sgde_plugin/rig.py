@@ -12,8 +12,9 @@ import numpy as np
 
 from .cameras import Camera, _matrix, intrinsics_from_dict
 from .errors import InputError
-from .geometry import ORTHONORMAL_TOL, rotation_error
+from .geometry import ORTHONORMAL_TOL, invert_transform, rotation_error
 from .io import atomic_write_text, image_size, read_depth_png, read_image, read_mask
+from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
 
 FORMAT = "sgde-rig/1"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -72,7 +73,7 @@ class Frame:
     depths: Mapping[str, Path] = field(default_factory=dict)
     extra: Mapping[str, Any] = field(default_factory=dict)
     cameras: Mapping[str, CameraCapture] = field(default_factory=dict)
-    lidar: Any = None  # a readers' LiDAR sweep (sgde_plugin.lidar.LidarSweep) for ground truth; not serialised
+    lidar: LidarSweep | None = None  # the LiDAR sweep a reader found for ground truth; not serialised
 
     def capture_time_us(self, camera: str) -> int:
         """The time camera `camera` took its image of this frame (the frame's time unless given)."""
@@ -116,6 +117,7 @@ class Rig:
     root: Path | None = None
     masks: Mapping[str, Path] = field(default_factory=dict)
     extra: Mapping[str, Any] = field(default_factory=dict)
+    lidar_config: LidarDepthConfig = field(default_factory=LidarDepthConfig)  # how LiDAR sweeps become depth
 
     # --- look-ups ---------------------------------------------------------------------------
     @property
@@ -147,6 +149,19 @@ class Rig:
         ego = fr.capture_ego_to_world(camera)
         return Capture(fr.capture_time_us(camera), ego, ego @ self.camera(camera).sensor_to_ego)
 
+    def as_captured(self, frame: str | Frame) -> Rig:
+        """The rig with each camera's sensor_to_ego as it was at its own capture of `frame`, seen from the
+        frame's ego pose: inv(ego_to_world(frame)) @ capture(frame, c).camera_to_world.
+
+        Relative poses between its cameras are then the true ones between the images of that frame (what
+        rectification, triangulation and back-projection need); with no per-camera entries it is `self`.
+        """
+        fr = frame if isinstance(frame, Frame) else self.frame(frame)
+        if not fr.cameras:
+            return self
+        world_to_ego = invert_transform(np.asarray(fr.ego_to_world, np.float64))
+        return self.with_extrinsics({c: world_to_ego @ self.capture(fr, c).camera_to_world for c in fr.cameras})
+
     def load_image(self, frame_id: str, camera: str) -> np.ndarray:
         """RGB uint8 image (H, W, 3) of one camera in one frame."""
         path = self.frame(frame_id).images.get(camera)
@@ -157,9 +172,15 @@ class Rig:
     def load_depth(self, frame_id: str, camera: str) -> np.ndarray | None:
         """Ground-truth depth in metres (0 = none) in the camera's convention, or None when the rig has none.
 
-        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera.
+        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera;
+        a frame's LiDAR sweep (nuScenes, DDAD) is projected into the camera at its own capture pose
+        (`sgde_plugin.lidar`, settings `lidar_config`), under the camera's mask.
         """
-        path = self.frame(frame_id).depths.get(camera)
+        frame = self.frame(frame_id)
+        path = frame.depths.get(camera)
+        if path is None and frame.lidar is not None:
+            return sweep_depth(frame.lidar, self.camera(camera), self.capture(frame, camera).camera_to_world,
+                               self.load_mask(camera), self.lidar_config)
         if path is None:
             return None
         if Path(path).suffix.lower() in (".tif", ".tiff"):

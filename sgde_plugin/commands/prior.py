@@ -41,6 +41,10 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("max_azimuth_deg", "float", "rectified canvas half-angle, degrees (60)"),
     ("max_elevation_deg", "float", "rectified canvas half-angle, degrees (50)"),
     ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
+    ("confidence_disparity_px", "float", "confidence x d / (d + this): small disparities are less sure (2)"),
+    ("edge_jump_px", "float", "confidence x jump / local disparity range beyond this, 0 = off (0)"),
+    ("normalize", "str", "photometric normalisation of each rectified pair: none, gain or local (none)"),
+    ("normalize_sigma", "float", "local normalisation window (Gaussian sigma), rectified pixels (8)"),
 ]
 OPTION_TYPES = {"int": int, "float": float, "str": str}
 
