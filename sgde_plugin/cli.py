@@ -15,7 +15,7 @@ import traceback
 
 from .errors import InputError
 
-COMMANDS = ["synth", "validate", "calibrate", "prior", "eval", "cache", "export", "demo", "bench"]
+COMMANDS = ["synth", "validate", "masks", "calibrate", "prior", "eval", "cache", "export", "demo", "bench"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -128,3 +128,27 @@ def estimate_static_mask(images: Sequence[np.ndarray], settings: MaskSettings | 
 def merge_masks(estimated: np.ndarray, user: np.ndarray | None) -> np.ndarray:
     """The mask to use: the user's when given (it takes precedence), else the estimated one."""
     return estimated if user is None else np.asarray(user) > 0
+
+
+def spread_frames(n_frames: int, count: int) -> list[int]:
+    """Up to `count` frame indices spread evenly over a sequence of `n_frames` (first and last included)."""
+    if n_frames <= count:
+        return list(range(n_frames))
+    return sorted({round(i * (n_frames - 1) / (count - 1)) for i in range(count)})
+
+
+def attach_masks(rig, folder):  # noqa: ANN001, ANN201 - Rig in, Rig out (kept free of a rig import cycle)
+    """The rig with `folder/<camera>.png` as static masks for every camera that has no mask of its own.
+
+    Masks already on the rig (the user's, from the rig folder's masks/) take precedence.
+    """
+    from dataclasses import replace
+    from pathlib import Path
+
+    from .errors import InputError
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, None, "mask folder not found")
+    found = {c: folder / f"{c}.png" for c in rig.camera_names if (folder / f"{c}.png").is_file()}
+    return replace(rig, masks={**found, **dict(rig.masks)})

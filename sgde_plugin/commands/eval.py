@@ -18,6 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "DIR/rig_true.json when present, else DIR's own rig)",
     )
     parser.add_argument("--max-depth", type=float, default=80.0, help="ground truth beyond this is ignored (80 m)")
+    parser.add_argument("--masks", help="folder of static masks <camera>.png for cameras without their own: "
+                        "masked pixels leave the ground truth and the overlap")
     parser.add_argument("--curve", action="store_true",
                         help="also print coverage and Abs Rel at each confidence threshold (sparsification curve)")
     parser.add_argument("--min-confidence", type=float, default=0.0,
@@ -58,6 +60,10 @@ def run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.min_confidence <= 1.0:
         raise InputError(None, "--min-confidence", "must be between 0 and 1")
     rig = load_rig(args.dir)
+    if args.masks:
+        from ..masks import attach_masks
+
+        rig = attach_masks(rig, args.masks)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
     cached_cams = set(cache.cameras())
