@@ -303,7 +303,8 @@ class PriorCache:
         """The stored depth of one camera image, checked against its written count of valid pixels."""
         s, fi, ci, cam = self._slot(frame_id, camera)
         raw = self._read(s, "depth", fi, ci, cam, frame_id)
-        n = int(np.count_nonzero(raw > 0))
+        # stored depths are 0 or positive finite float16: counting non-zero bit patterns counts valid pixels
+        n = int(np.count_nonzero(raw.view(np.uint16)))
         if n != int(s["counts"][fi, ci]):
             raise self._damaged(
                 s["group"].basename, frame_id, camera,
