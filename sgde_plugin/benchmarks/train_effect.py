@@ -1,4 +1,4 @@
-"""`sgde bench train-effect`: does the depth prior help a depth network? Three arms, one budget.
+"""`sgde bench train-effect`: does the depth prior help a depth network? Three (or four) arms, one budget.
 
 Supervised training of the reference R18 depth net on a nuScenes-like synthetic sequence (six
 cameras), evaluated on held-out frames further down the street:
@@ -13,6 +13,14 @@ where the prior pipeline matches), 24 training frames and 12 held-out frames per
 Adam lr 4e-4, LiDAR-like sparse supervision, evaluation on dense ground truth <= 80 m, and the
 prior arms with the optional validity channel. No pretrained weights (offline).
 
+`--supervision self` (``run(supervision="self")``) trains the four arms of the paper's self-supervised
+table instead (baseline, + input, + L1, + input & L1) with view synthesis (`sgde_plugin.nn.photometric`):
+each camera's depth is scored by warping the same camera at t -/+ ``context_s`` (poses from the ego
+trajectory) and its two adjacent cameras of the same capture (metric scale) into it; a LiDAR-supervised
+baseline from the same initial weights is trained alongside as the reference for "a working
+self-supervised baseline". Abs Rel is reported without and with per-image median scaling.
+The training loop itself lives in `sgde_plugin.nn.train`.
+
 Data enter through one function, `load_sequence`, returning a `RigSequence` (images, ground
 truth, LiDAR-like training depth, prior and its validity, per camera per frame, plus the cameras
 for Dep Con). Scenes come from `sgde_plugin.synth`; priors from the project's prior pipeline
@@ -23,6 +31,7 @@ to the true overlap of adjacent cameras with stereo-like noise. The output says 
 from __future__ import annotations
 
 import copy
+import math
 import os
 import time
 from collections.abc import Callable, Collection
@@ -209,6 +218,19 @@ SUPERVISION = {
 }
 
 
+SELF_INITIAL_DEPTH_M = 10.0  # self-supervised nets start predicting this depth everywhere (all arms alike)
+SELF_LR = 1e-3
+
+
+def start_at_depth(net: DepthNet, depth_m: float) -> None:
+    """Set the depth heads' biases so that a zero input to them gives ``depth_m`` (a view-synthesis loss
+    only sees pixels a few pixels from their current match: a random net's ~1 m start is too far)."""
+    sig = (1.0 / depth_m - 1.0 / net.max_depth) / (1.0 / net.min_depth - 1.0 / net.max_depth)
+    with torch.no_grad():
+        for head in net.decoder.heads.values():
+            head.bias.fill_(math.log(sig / (1.0 - sig)))
+
+
 @dataclass(frozen=True)
 class Protocol:
     """What one run of the bench trains and evaluates (the same for every arm and seed)."""
@@ -254,6 +276,8 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
                                   max_depth=MAX_DEPTH_EVAL)
     torch.manual_seed(seed)
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0, scales=(0, 1, 2, 3))
+    if supervision == "self":
+        start_at_depth(init, SELF_INITIAL_DEPTH_M)
     arms = SELF_SUPERVISED_ARMS if supervision == "self" else SUPERVISED_ARMS
     nets = arm_nets(init, arms, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem)
     self_sup = SelfSupervision(seq) if supervision == "self" else None
@@ -325,11 +349,13 @@ def _protocol(fast: bool, supervision: str, size: tuple[int, int] | None, steps:
 
 def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | None = None,
         train_frames: int | None = None, test_frames: int | None = None, seeds: tuple[int, ...] | None = None,
-        validity: bool = True, lr: float = 4e-4, log: Callable[[str], None] | None = None,
+        validity: bool = True, lr: float | None = None, log: Callable[[str], None] | None = None,
         render_factor: int = 4, supervision_density: float | None = None, stem: str = "full",
         supervision: str = "lidar", context_s: float = 0.1) -> dict:
-    """Run the arms for each seed and return per-seed and mean figures (see module docstring)."""
+    """Run the arms for each seed and return per-seed and mean figures (see module docstring).
+    ``lr`` defaults to 4e-4 (LiDAR-like) or 1e-3 (self-supervised)."""
     log = log or (lambda _msg: None)
+    lr = lr if lr is not None else (SELF_LR if supervision == "self" else 4e-4)
     size, steps, n_train, n_test = _protocol(fast, supervision, size, steps, train_frames, test_frames)
     seeds = tuple(seeds) if seeds is not None else ((0,) if fast else (0, 1, 2))
     t0, cpu0 = time.perf_counter(), time.process_time()
@@ -358,7 +384,8 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
         "prior_pasted_note": "baseline.pasted_abs_rel: the baseline's prediction with the prior pasted in wherever "
                              "it is valid, i.e. what a purely local use of the prior can give",
         "init": "random (no pretrained weights available offline); per seed identical initial weights and data "
-                "order for all arms; a seed also changes the world",
+                "order for all arms; a seed also changes the world"
+                + (f"; depth heads start at {SELF_INITIAL_DEPTH_M:g} m" if supervision == "self" else ""),
         "overlap_fraction_test": round(float(seq.overlap[test_idx].mean()), 4),
         "prior_fraction_test": round(float(seq.valid[test_idx].mean()), 4),
         **_summary(per_seed, names, supervision),
