@@ -2,15 +2,10 @@
 
 from __future__ import annotations
 
-import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sgde_plugin.nn import PriorEncoding
-
-# Stand-in for "no value" while min pooling; finite and below the float16 maximum (65504) so the
-# same graph works in half precision. Any real prior is far closer than this.
-_FAR = 1.0e4
+from sgde_plugin.splat import min_pool_nonzero_torch
 
 
 def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
@@ -18,25 +13,26 @@ def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
 
     This is BEVDepth's ground-truth downsampling (nearest surface per patch), except that a patch
     without any value is 0 ("none") instead of a fill value. H and W must be multiples of stride.
+    (`sgde_plugin.splat.min_pool_nonzero_torch`; exports to ONNX, works in half precision.)
     """
     if stride == 1:
         return depth
-    *lead, h, w = depth.shape
+    h, w = depth.shape[-2:]
     if h % stride or w % stride:
         raise ValueError(f"depth size {h}x{w} is not a multiple of the stride {stride}")
-    flat = depth.reshape(-1, 1, h, w)
-    far = torch.where(flat > 0, flat, torch.full_like(flat, _FAR))
-    pooled = -F.max_pool2d(-far, kernel_size=stride, stride=stride)
-    pooled = torch.where(pooled >= _FAR, torch.zeros_like(pooled), pooled)
-    return pooled.reshape(*lead, h // stride, w // stride)
+    return min_pool_nonzero_torch(depth, stride)
 
 
 class PriorFeatureEncoder(nn.Module):
     """Metric prior at image size -> features at the feature stride, to be added to a feature map.
 
     Steps: min-pool ignoring zeros to the feature stride, ``PriorEncoding`` (depth / max_depth in
-    [0, 1], 0 = none, plus a validity channel), then two 1x1 convolutions. With ``zero_init`` the
-    last convolution starts at zero, so adding the output changes nothing until training moves it.
+    [0, 1], 0 = none, plus a validity channel), two 1x1 convolutions, then times the cell's validity:
+    a cell without prior gets exactly 0, so an all-zero prior adds exactly nothing (the same as no
+    prior, in torch and in an exported graph). With ``zero_init`` the last convolution starts at
+    zero, so adding the output changes nothing until training moves it. Pooling and normalisation
+    run in the prior's dtype, the convolutions in the weights' dtype (a ``.half()`` net takes a
+    float32 prior).
     """
 
     def __init__(
@@ -69,5 +65,7 @@ class PriorFeatureEncoder(nn.Module):
         return min_pool_nonzero(prior, self.downsample)
 
     def forward(self, prior: Tensor) -> Tensor:
-        """Prior [B, N, H, W] (or [B*N, 1, H, W]) in metres -> features [B*N, out, H/s, W/s]."""
-        return self.net(self.encoding(self.pooled(prior)))
+        """Prior [B, N, H, W] (or [B*N, 1, H, W]) in metres -> features [B*N, out, H/s, W/s], 0 where none."""
+        pooled = self.pooled(prior)
+        feats = self.net(self.encoding(pooled).to(self.net[0].weight.dtype))
+        return feats * (pooled > 0).to(feats.dtype)

@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from .cameras import Camera, CameraModel, pixel_grid
+from .cameras import Camera, CameraModel
 from .geometry import invert_transform
+from .splat import warp_depth as splat_warp_depth
 
 METRIC_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 OMNIMVS_KEYS = (">1", ">3", ">5", "mae", "rms")
@@ -150,10 +151,6 @@ def omnimvs_metrics(
 
 # --- Dep Con ------------------------------------------------------------------------------------
 
-def _model(cam: Camera | CameraModel) -> CameraModel:
-    return cam.intrinsics if isinstance(cam, Camera) else cam
-
-
 def warp_depth(
     depth_src: Any,
     src: Camera | CameraModel,
@@ -165,24 +162,9 @@ def warp_depth(
     Every source pixel with depth > 0 is lifted to 3-D (in the source's depth convention), moved by
     the 4x4 ``src_to_dst`` (source camera frame -> destination camera frame), projected into the
     destination and written at the nearest pixel as depth in the destination's convention; when
-    several land on one pixel the nearest surface wins (z-buffer).
+    several land on one pixel the nearest surface wins (z-buffer; `sgde_plugin.splat.warp_depth`).
     """
-    ms, md = _model(src), _model(dst)
-    d = torch.as_tensor(_np(depth_src))
-    if d.shape != (ms.height, ms.width):
-        raise ValueError(f"depth {tuple(d.shape)} does not match camera size {(ms.height, ms.width)}")
-    T = torch.as_tensor(_np(src_to_dst))
-    pts, ok = ms.points_from_depth_torch(pixel_grid(ms.width, ms.height), d)
-    ok = ok & (d > 0) & torch.isfinite(d)
-    pts = pts[ok] @ T[:3, :3].T + T[:3, 3]
-    uv, vis = md.project_torch(pts)
-    z = md.depth_torch(pts)
-    col, row = torch.round(uv[:, 0]).long(), torch.round(uv[:, 1]).long()
-    vis = vis & (z > 0) & (col >= 0) & (col < md.width) & (row >= 0) & (row < md.height)
-    buf = torch.full((md.height * md.width,), math.inf, dtype=torch.float64)
-    buf.scatter_reduce_(0, row[vis] * md.width + col[vis], z[vis], reduce="amin")
-    buf[torch.isinf(buf)] = 0.0
-    return buf.reshape(md.height, md.width).numpy()
+    return splat_warp_depth(_np(depth_src), src, dst, _np(src_to_dst))
 
 
 def dep_con_terms(
@@ -230,7 +212,11 @@ def rig_dep_con(
     pairs: Sequence[tuple[str, str]],
     max_depth: float = math.inf,
 ) -> dict[str, Any]:
-    """Dep Con over a rig: both directions of every adjacent pair, pixels pooled; also per pair."""
+    """Dep Con over a rig: both directions of every adjacent pair, pixels pooled; also per pair.
+
+    Cameras are related by their `sensor_to_ego`; for a frame whose cameras fired at different times
+    pass `rig.as_captured(frame)`'s cameras, so the relative poses are those at each camera's capture.
+    """
     total, count = 0.0, 0
     per_pair: dict[str, float] = {}
     for a, b in pairs:

@@ -81,3 +81,20 @@ def test_bad_options_exit_2(folder, tmp_path, capsys):
     assert main(["calibrate", str(folder), "--out", str(out), "--frames", "5:9"]) == 2
     assert "empty" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_no_window_accepted_one_line_exit_0_or_3_with_strict(folder, tmp_path, capsys):
+    out = tmp_path / "out.json"
+    args = ["calibrate", str(folder), "--out", str(out), "--frames", "0:2", "--beta", "1000000"]
+    assert main(args) == 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no window accepted" in err and "min_correspondences" in err
+    block = read_rig_json(out).extra["calibration"]
+    assert not block["accepted"] and [f["rule"] for f in block["rules_fired"]] == ["min_correspondences"]
+    assert main([*args, "--strict"]) == 3
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    # every rule that fired is kept: a tiny alpha and two iterations fire both after the adjustment
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", "--alpha", "1e-6",
+                 "--max-iterations", "2", "--strict"]) == 3
+    fired = [f["rule"] for f in read_rig_json(out).extra["calibration"]["rules_fired"]]
+    assert fired[0] == "not_converged" and "translation_change" in fired

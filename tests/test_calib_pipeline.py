@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 
 from sgde_plugin.calib import AcceptanceRules, calibrate, calibration_at, check_extrinsics, default_beta
-from sgde_plugin.calib.acceptance import BETA_DDAD, BETA_NUSCENES, BETA_SYNTH, check_correspondences, check_result
+from sgde_plugin.calib.acceptance import (
+    BETA_DDAD,
+    BETA_NUSCENES,
+    BETA_SIFT,
+    BETA_SYNTH,
+    check_correspondences,
+    check_result,
+)
 from sgde_plugin.calib.simulate import box_world_rig
 from sgde_plugin.errors import InputError
 from sgde_plugin.pairs import relative_pose_errors
@@ -32,7 +39,9 @@ def test_glc_window_accepted_black_camera_window_rejected(box):
     w0, w1 = block["windows"]
     assert w0["accepted"] and w0["rule"] is None and w0["converged"] and w0["iterations"] <= 200
     assert not w1["accepted"] and w1["rule"] == "min_correspondences"
-    assert "C2" in w1["reason"] and f"beta = {BETA_SYNTH}" in w1["reason"]
+    assert "C2 not linked to C0" in w1["reason"] and f"beta = {BETA_SIFT}" in w1["reason"]
+    assert w1["rules_fired"] == [{"rule": "min_correspondences", "reason": w1["reason"]}]
+    assert {p["status"] for p in w1["pairs"] if "C2" in (p["a"], p["b"])} == {"through ring"}
     assert w1["iterations"] == 0  # rejected before the adjustment
     # the output keeps the last accepted calibration, which is much better than the input
     rot0, trans0 = errors(rig, rig_true)
@@ -75,7 +84,7 @@ def test_rules_fire_with_their_names(box):
     out, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2),
                            rules=AcceptanceRules(min_correspondences=10**6))
     w = block["windows"][0]
-    assert w["rule"] == "min_correspondences" and "fewer than beta = 1000000" in w["reason"]
+    assert w["rule"] == "min_correspondences" and "beta = 1000000" in w["reason"]
     assert w["pairs"][0]["inliers"] > 100 and w["iterations"] == 0 and not block["history"]
     assert out.cameras == rig.cameras  # the previous (here: input) calibration is kept
     _, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2),
@@ -88,23 +97,48 @@ def test_rules_fire_with_their_names(box):
 
 def test_acceptance_functions():
     rules = AcceptanceRules(min_correspondences=50, max_iterations=200, max_translation_change_m=0.3)
-    assert check_correspondences({("A", "B"): 50, ("B", "C"): 120}, rules).accepted
-    v = check_correspondences({("A", "B"): 49}, rules)
-    assert not v.accepted and v.rule == "min_correspondences" and "A-B has 49" in v.reason
+    ring = {("A", "B"): 3, ("B", "C"): 1, ("C", "A"): 0}  # observation pairs passing beta, per camera pair
+    assert check_correspondences(ring, rules, "A").accepted  # C-A is constrained through the ring
+    v = check_correspondences({("A", "B"): 3, ("B", "C"): 0, ("C", "A"): 0}, rules, "A")
+    assert not v.accepted and v.rule == "min_correspondences" and "camera(s) C not linked to A" in v.reason
     eye = np.eye(4)
     moved = np.eye(4)
     moved[0, 3] = 0.31
     before, after = {"A": eye, "B": eye}, {"A": eye, "B": moved}
     assert check_result(True, 10, before, after, [("A", "B")], rules).rule == "translation_change"
+    # alpha is checked on observed pairs only: a pair seen through the ring is not judged by it
+    assert check_result(True, 10, before, after, [], rules).accepted
     assert check_result(True, 201, before, before, [("A", "B")], rules).rule == "not_converged"
-    assert check_result(False, 10, before, before, [("A", "B")], rules).rule == "not_converged"
+    both = check_result(False, 10, before, after, [("A", "B")], rules)
+    assert both.rule == "not_converged" and [r for r, _ in both.fired] == ["not_converged", "translation_change"]
     assert check_result(True, 10, before, {"A": eye, "B": eye * np.nan}, [("A", "B")], rules).rule == "non_finite"
     assert check_result(True, 200, before, before, [("A", "B")], rules).accepted
 
 
+def test_a_pair_without_matches_is_calibrated_through_the_ring(box):
+    """C2's side towards C3 is black: C2-C3 has no observation, the window is accepted and that pair's
+    relative pose, which comes through the ring, is within 2x of the worst observed pair's error."""
+    rig_true, rig, images = box
+    blind = {f: dict(cams) for f, cams in images.items()}
+    for fid in ("000000", "000001"):
+        img = images[fid]["C2"].copy()
+        img[:, 2 * img.shape[1] // 3 :] = 0
+        blind[fid]["C2"] = img
+    out, block = calibrate(rig, lambda f, c: blind[f][c], frames=slice(0, 2))
+    w = block["windows"][0]
+    assert w["accepted"] and w["rules_fired"] == []
+    status = {(p["a"], p["b"]): p["status"] for p in w["pairs"]}
+    assert status.pop(("C2", "C3")) == "through ring" and set(status.values()) == {"observed"}
+    rot, trans = errors(out, rig_true)
+    rot0, _ = errors(rig, rig_true)
+    others = np.delete(rot, 2)
+    assert rot0.min() > 0.5 and rot[2] <= 2 * others.max() and rot.max() < 0.5 and trans.max() < 0.03
+
+
 def test_default_beta(box):
     _, rig, _ = box
-    assert default_beta(rig) == BETA_SYNTH
+    assert default_beta(rig) == BETA_SIFT == 15  # SIFT: one value for every data set
+    assert default_beta(rig, "loftr") == BETA_SYNTH
     plain = rig.with_extra(synth=None)
     from dataclasses import replace
 
@@ -112,10 +146,10 @@ def test_default_beta(box):
 
     renamed = replace(plain, extra={}, cameras=tuple(Camera(f"CAMERA_0{i}", c.intrinsics, c.sensor_to_ego)
                                                       for i, c in enumerate(rig.cameras)))
-    assert default_beta(renamed) == BETA_DDAD == 200
+    assert default_beta(renamed, "loftr") == BETA_DDAD == 200
     renamed = replace(renamed, cameras=tuple(Camera(f"CAM_{i}", c.intrinsics, c.sensor_to_ego)
                                              for i, c in enumerate(rig.cameras)))
-    assert default_beta(renamed) == BETA_NUSCENES == 50
+    assert default_beta(renamed, "loftr") == BETA_NUSCENES == 50
 
 
 def test_bad_initial_extrinsics_are_input_errors(box):

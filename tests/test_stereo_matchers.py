@@ -113,8 +113,9 @@ def tiny_files(tmp_path_factory):
     torch.save(net.state_dict(), folder / "tiny.pt")
     example = (torch.rand(1, 3, 64, 96) * 255, torch.rand(1, 3, 64, 96) * 255)
     torch.jit.trace(net, example).save(str(folder / "tiny_script.pt"))
+    axes = {name: {0: "batch", 2: "height", 3: "width"} for name in ("left", "right", "disp")}
     torch.onnx.export(net, example, str(folder / "tiny.onnx"), input_names=["left", "right"], output_names=["disp"],
-                      opset_version=17, dynamo=False)
+                      opset_version=17, dynamo=False, dynamic_axes=axes)
     return folder
 
 

@@ -131,12 +131,12 @@ def test_config_dict_tracks_everything_that_changes_the_output(tmp_path):
     base = PriorConfig().to_dict()
     assert base["algo_version"] == PRIOR_ALGO_VERSION and base["matcher"] == "sgbm" and base["scale"] == 0.5
     assert PriorConfig(scale=0.25).to_dict() != base and PriorConfig(uniqueness=5).to_dict() != base
-    model = tmp_path / "m.onnx"
+    model = tmp_path / "m.pt"
     model.write_bytes(b"one")
-    d1 = PriorConfig(matcher="onnx", matcher_path=str(model)).to_dict()
+    d1 = PriorConfig(matcher="torch", matcher_path=str(model)).to_dict()
     model.write_bytes(b"two")
-    d2 = PriorConfig(matcher="onnx", matcher_path=str(model)).to_dict()
-    assert d1["matcher_sha256"] != d2["matcher_sha256"] and "uniqueness" not in d1
+    d2 = PriorConfig(matcher="torch", matcher_path=str(model)).to_dict()
+    assert d1["matcher_sha256"] != d2["matcher_sha256"] and d1["uniqueness"] == 15  # every setting is in
     with pytest.raises(InputError):
         PriorConfig(matcher="raft")
     with pytest.raises(InputError):

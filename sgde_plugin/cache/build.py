@@ -29,8 +29,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import progress
+from .backends import location_name
+from .creation import prepare_scene, remove_partial_files
 from .fingerprints import config_document, fingerprint_parts
-from .store import SceneWriter, location_name, prepare_scene, remove_partial_files
+from .lock import writer_lock
+from .writer import SceneWriter
 
 Compute = Callable[[str], Mapping[str, tuple[np.ndarray, np.ndarray | None]]]
 ENGINES = ("local", "ray")
@@ -44,6 +47,7 @@ class PriorCompute:
         self.config = config
         self._builder: Any = None
         self._masks: dict[str, np.ndarray] | None = None
+        self.last_warning: str | None = None  # the builder's note when the last frame's prior came out empty
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_builder": None, "_masks": None}
@@ -58,7 +62,8 @@ class PriorCompute:
             self._builder = PriorBuilder(self.rig, self.config)
             masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
             self._masks = {c: m for c, m in masks.items() if m is not None} or None
-        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks)
+        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks, frame=frame_id)
+        self.last_warning = self._builder.last_warning
         return {cam: (m.depth, m.confidence) for cam, m in maps.items()}
 
 
@@ -77,6 +82,9 @@ class BuildReport:
     workers: int
     engine: str
     frame_seconds: list[float] = field(default_factory=list)  # when each built frame was done, from start
+    warnings: list[tuple[str, str]] = field(default_factory=list)  # (frame id, why its prior is empty)
+    frames_repaired: dict[str, str] = field(default_factory=dict)  # damaged frames rebuilt: {frame id: problem}
+    locked: bool = False  # whether the cache's writer lock was held (local folders)
 
     def steady_rate(self) -> float:
         """Frames per second once every worker has finished its first frame (start-up excluded)."""
@@ -92,8 +100,16 @@ class BuildReport:
         return (
             f"{self.location} [{self.scene}]: {self.frames_built} frames built, {self.frames_already_done} already "
             f"there, {self.frames_total} in scene; {self.seconds:.1f} s ({rate:.2f} frames/s, {self.workers} "
-            f"{self.engine} workers); fingerprint {self.fingerprint}"
+            f"{self.engine} workers); fingerprint {self.fingerprint}{self.repair_text()}"
         )
+
+    def repair_text(self) -> str:
+        """'; N damaged frames rebuilt: id (problem), ...' or '' when none was."""
+        if not self.frames_repaired:
+            return ""
+        shown = ", ".join(f"{fid} ({why})" for fid, why in list(self.frames_repaired.items())[:10])
+        more = f", +{len(self.frames_repaired) - 10} more" if len(self.frames_repaired) > 10 else ""
+        return f"; {len(self.frames_repaired)} damaged frame(s) rebuilt: {shown}{more}"
 
 
 def sanitize_scene_name(name: str) -> str:
@@ -109,8 +125,8 @@ def default_scene_name(rig: Any) -> str:
     return sanitize_scene_name(name)
 
 
-def limit_threads(n: int) -> dict[str, int]:
-    """Set OpenCV's and torch's thread counts to n; returns the previous values."""
+def limit_threads(n: int, torch_n: int | None = None) -> dict[str, int]:
+    """Set OpenCV's thread count to n and torch's to torch_n (default n); returns the previous values."""
     previous = {}
     try:
         import cv2
@@ -122,7 +138,7 @@ def limit_threads(n: int) -> dict[str, int]:
     if "torch" in sys.modules:
         torch = sys.modules["torch"]
         previous["torch"] = torch.get_num_threads()
-        torch.set_num_threads(n)
+        torch.set_num_threads(n if torch_n is None else torch_n)
     return previous
 
 
@@ -137,25 +153,40 @@ def _restore_threads(previous: Mapping[str, int]) -> None:
         torch.set_num_threads(previous["torch"])
 
 
-def run_frame(compute: Compute, writer: SceneWriter, index: int, frame_id: str) -> tuple[int, int, tuple | None]:
-    """Compute and write one frame: (index, valid pixels, error as (file, key, problem) or None)."""
+class StrictWarningError(Exception):
+    """A frame's prior came out empty and the build was asked to be strict (`sgde prior --strict`, exit 3)."""
+
+
+def run_frame(compute: Compute, writer: SceneWriter, index: int, frame_id: str) -> tuple:
+    """Compute and write one frame: (index, valid pixels, error as (file, key, problem) or None, warning or None).
+
+    The warning is the compute's `last_warning` (PriorCompute: why the frame's prior is empty)."""
     try:
         maps = compute(frame_id)
-        return index, writer.write_frame(index, maps), None
+        return index, writer.write_frame(index, maps), None, getattr(compute, "last_warning", None)
     except InputError as exc:  # passed back as a tuple: InputError does not pickle
-        return index, 0, (exc.file, exc.key, exc.problem)
+        return index, 0, (exc.file, exc.key, exc.problem), None
+    except OSError as exc:  # unreadable input, a full disk, a read-only cache: named, not a crash
+        where = exc.filename if getattr(exc, "filename", None) else location_name(writer.location)
+        return index, 0, (str(where), f"frame {frame_id}", exc.strerror or str(exc)), None
 
 
 # --- local processes ----------------------------------------------------------------------
 _WORKER: dict[str, Any] = {}
 
 
-def _init_worker(compute: Compute, writer: SceneWriter) -> None:
-    limit_threads(1)
+def _init_worker(compute: Compute, writer: SceneWriter, torch_n: int = 1) -> None:
+    import signal
+
+    from .lifetime import die_with_parent
+
+    die_with_parent()  # the fork server; it dies with the main process in turn
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the main process stops the workers
+    limit_threads(1, torch_n)
     _WORKER["compute"], _WORKER["writer"] = compute, writer
 
 
-def _worker_frame(index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+def _worker_frame(index: int, frame_id: str) -> tuple:
     return run_frame(_WORKER["compute"], _WORKER["writer"], index, frame_id)
 
 
@@ -166,21 +197,24 @@ def _mp_context() -> multiprocessing.context.BaseContext:
     if "forkserver" in methods:
         ctx = multiprocessing.get_context("forkserver")
         heavy = ("torch", "cv2", "sgde_plugin.rig", "sgde_plugin.stereo.pipeline")
-        ctx.set_forkserver_preload(["sgde_plugin.cache.build", *(m for m in heavy if m in sys.modules)])
+        preload = ["sgde_plugin.cache.lifetime", "sgde_plugin.cache.build"]
+        ctx.set_forkserver_preload([*preload, *(m for m in heavy if m in sys.modules)])
         return ctx
     return multiprocessing.get_context("spawn")
 
 
 def _run_local(tasks: list[tuple[int, str]], compute: Compute, writer: SceneWriter, workers: int, on_done) -> None:
+    torch_n = torch_threads_per_worker(workers)  # a learned matcher parallelises inside torch
     if workers <= 1:
-        previous = limit_threads(1)
+        previous = limit_threads(1, torch_n)
         try:
             for index, fid in tasks:
                 on_done(run_frame(compute, writer, index, fid))
         finally:
             _restore_threads(previous)
         return
-    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(), initializer=_init_worker, initargs=(compute, writer))
+    pool = ProcessPoolExecutor(workers, mp_context=_mp_context(), initializer=_init_worker,
+                               initargs=(compute, writer, torch_n))
     with pool as ex:
         queue = collections.deque(tasks)
         running = set()
@@ -192,8 +226,13 @@ def _run_local(tasks: list[tuple[int, str]], compute: Compute, writer: SceneWrit
                 for fut in finished:
                     on_done(fut.result())
         except BaseException:
+            # interrupted (Ctrl-C, SIGTERM) or failed: stop at once; a killed frame write is harmless,
+            # its done marker comes last
             for fut in running:
                 fut.cancel()
+            for proc in list(getattr(ex, "_processes", {}).values()):
+                proc.terminate()
+            ex.shutdown(wait=False, cancel_futures=True)
             raise
 
 
@@ -205,7 +244,7 @@ class RayFrameWorker:
         limit_threads(1)
         self.compute, self.writer = compute, writer
 
-    def run(self, index: int, frame_id: str) -> tuple[int, int, tuple | None]:
+    def run(self, index: int, frame_id: str) -> tuple:
         """Compute and write one frame."""
         return run_frame(self.compute, self.writer, index, frame_id)
 
@@ -250,6 +289,18 @@ def _run_ray(
 
 
 # --- the build ----------------------------------------------------------------------------
+def _note_warning(
+    frame_id: str, text: str, warnings: list[tuple[str, str]], on_warning: Callable[[str, str], None] | None,
+    strict: bool,
+) -> None:
+    """Record a frame's warning, tell the caller, and stop the build when strict."""
+    warnings.append((frame_id, text))
+    if on_warning is not None:
+        on_warning(frame_id, text)
+    if strict:
+        raise StrictWarningError(f"frame {frame_id}: {text}")
+
+
 def build_cache(
     rig: Any,
     out: Any,
@@ -263,9 +314,20 @@ def build_cache(
     ray_address: str | None = None,
     storage_options: Mapping[str, Any] | None = None,
     show_progress: bool | None = None,
+    on_warning: Callable[[str, str], None] | None = None,
+    strict: bool = False,
+    repair: bool = False,
+    wait_s: float = 0.0,
 ) -> BuildReport:
     """Build (or resume) the priors of every frame of `rig` into the cache `out` (folder or fsspec
-    URL). Refuses (InputError) a cache built with another calibration or configuration."""
+    URL). Refuses (InputError) a cache built with another calibration or configuration, and a cache
+    another build is writing (after waiting up to `wait_s` s for its writer lock). Damaged frames are
+    rebuilt: those with a missing shard always, those with any unreadable chunk with `repair=True`.
+    A frame whose prior comes out empty goes to `on_warning(frame_id, text)` and the report's
+    `warnings`; `strict` stops there.
+
+    With workers > 1 the frames run in processes started by a fork server, which imports the calling
+    script's main module: call it from a script under `if __name__ == "__main__":`."""
     if engine not in ENGINES:
         raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
     if config is None and compute is None:
@@ -279,57 +341,105 @@ def build_cache(
     parts = dict(fingerprint_parts(rig, config, algo_version))
     parts["config_document"] = config_document(config, algo_version)
     start = time.perf_counter()
-    plan = prepare_scene(out, scene, rig, parts, storage_options)
-    remove_partial_files(out, scene)
-    if compute is None:
-        compute = PriorCompute(rig, config)
-    writer = SceneWriter(out, scene, storage_options)
-    tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
-    workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
-    built, pixels = 0, 0
-    stamps: list[float] = []
-    bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
-
-    def on_done(result: tuple[int, int, tuple | None]) -> None:
-        nonlocal built, pixels
-        _, count, error = result
-        if error is not None:
-            raise InputError(*error)
-        built += 1
-        pixels += count
-        stamps.append(time.perf_counter() - start)
-        bar.update(1)
-
-    used = 0
-    try:
-        if tasks and engine == "ray":
-            used = _run_ray(tasks, compute, writer, workers, ray_address, on_done)
-        elif tasks:
-            used = max(1, min(workers, len(tasks)))
-            _run_local(tasks, compute, writer, used, on_done)
-    finally:
-        bar.close()
+    with writer_lock(out, wait_s) as locked:
+        try:
+            plan = prepare_scene(out, scene, rig, parts, storage_options, repair=repair, locked=locked)
+            remove_partial_files(out, scene)
+        except OSError as exc:  # a read-only file system, a full disk, no permission
+            raise InputError(location_name(out), None, f"cannot write ({exc.strerror or exc})") from None
+        if compute is None:
+            compute = PriorCompute(rig, config)
+        writer = SceneWriter(out, scene, storage_options, expect=parts["fingerprint"])
+        tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
+        workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
+        bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
+        run = _Run(start, bar, plan.frame_ids, on_warning, strict)
+        used = 0
+        try:
+            if tasks and engine == "ray":
+                used = _run_ray(tasks, compute, writer, workers, ray_address, run.on_done)
+            elif tasks:
+                used = max(1, min(workers, len(tasks)))
+                _run_local(tasks, compute, writer, used, run.on_done)
+        finally:
+            run.bar.close()
     return BuildReport(
-        location=location_name(out),
-        scene=scene,
-        fingerprint=parts["fingerprint"],
-        frames_total=len(plan.frame_ids),
-        frames_built=built,
-        frames_already_done=plan.already_done,
-        valid_pixels=pixels,
-        seconds=time.perf_counter() - start,
-        workers=used,
-        engine=engine,
-        frame_seconds=stamps,
+        location=location_name(out), scene=scene, fingerprint=parts["fingerprint"],
+        frames_total=len(plan.frame_ids), frames_built=run.built, frames_already_done=plan.already_done,
+        valid_pixels=run.pixels, seconds=time.perf_counter() - start, workers=used, engine=engine,
+        frame_seconds=run.stamps, warnings=run.warnings, frames_repaired=dict(plan.damaged), locked=bool(locked),
     )
 
 
-def default_workers() -> int:
-    """Number of worker processes by default: the CPUs this process may use."""
+class _Run:
+    """Progress of one build: frames built, pixels, completion times, warnings; raises a worker's input error."""
+
+    def __init__(self, start: float, bar: Any, frame_ids: list[str],
+                 on_warning: Callable[[str, str], None] | None, strict: bool):
+        self.start, self.bar, self.frame_ids = start, bar, frame_ids
+        self.on_warning, self.strict = on_warning, strict
+        self.built, self.pixels = 0, 0
+        self.stamps: list[float] = []
+        self.warnings: list[tuple[str, str]] = []
+
+    def on_done(self, result: tuple) -> None:
+        """Account one finished frame."""
+        index, count, error, warning = result
+        if error is not None:
+            raise InputError(*error)
+        if warning:
+            _note_warning(self.frame_ids[index], warning, self.warnings, self.on_warning, self.strict)
+        self.built += 1
+        self.pixels += count
+        self.stamps.append(time.perf_counter() - self.start)
+        self.bar.update(1)
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may use."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to new processes (MemAvailable), None where unknown."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+# peak memory of one worker running a learned matcher (RAFT-Stereo, six-camera frame at scale 0.5: 1.1-1.8 GB)
+LEARNED_WORKER_BYTES = 2 * 1024**3
+
+
+def default_workers(config: Any = None) -> int:
+    """Worker processes by default: one per CPU; a learned matcher: as many as memory allows (2 GiB each),
+    and one on a GPU (torch then uses the CPUs inside that worker)."""
+    cpus = usable_cpus()
+    if not getattr(config, "learned", False):
+        return cpus
+    if getattr(config, "device", "cpu") != "cpu":
+        return 1
+    memory = available_memory()
+    return cpus if memory is None else max(1, min(cpus, memory // LEARNED_WORKER_BYTES))
+
+
+def torch_threads_per_worker(workers: int) -> int:
+    """Torch threads per worker process: OMP_NUM_THREADS when set, else the idle CPUs shared out (one worker
+    on an idle machine gets them all; on a busy one, 1: OpenMP threads that wait for a core run ~10x slower)."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    cpus = usable_cpus()
+    idle = cpus - round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else cpus
+    return max(1, min(cpus // max(1, workers), idle))
 
 
 __all__ = [
@@ -340,6 +450,10 @@ __all__ = [
     "build_cache",
     "default_scene_name",
     "default_workers",
+    "StrictWarningError",
+    "available_memory",
+    "torch_threads_per_worker",
+    "usable_cpus",
     "sanitize_scene_name",
     "limit_threads",
     "run_frame",

@@ -15,6 +15,8 @@ import math
 import cv2
 import numpy as np
 
+from ..splat import min_pool_nonzero
+
 
 def as_affine(matrix: np.ndarray) -> np.ndarray:
     """A 3x3 pixel affine from a 3x3 matrix or a BEVDepth-style 4x4 `ida_mat`."""
@@ -83,22 +85,8 @@ def _pool_matrix(ky: int, kx: int) -> np.ndarray:
 
 def min_pool_depth(depth: np.ndarray, ky: int, kx: int, *extra: np.ndarray) -> tuple[np.ndarray, ...]:
     """Min-pool a depth map (0 = none) over ky x kx blocks among valid values; extra maps follow the
-    chosen pixel. Edge blocks are padded with 'none'."""
-    h, w = depth.shape
-    hp, wp = -(-h // ky) * ky, -(-w // kx) * kx
-    d = np.full((hp, wp), np.inf, dtype=np.float32)
-    d[:h, :w] = np.where(depth > 0, depth, np.inf)
-    blocks = d.reshape(hp // ky, ky, wp // kx, kx).transpose(0, 2, 1, 3).reshape(hp // ky, wp // kx, ky * kx)
-    arg = np.argmin(blocks, axis=-1)[..., None]
-    out = np.take_along_axis(blocks, arg, axis=-1)[..., 0]
-    out[~np.isfinite(out)] = 0.0
-    results = [out]
-    for e in extra:
-        ep = np.zeros((hp, wp), dtype=e.dtype)
-        ep[:h, :w] = e
-        eb = ep.reshape(hp // ky, ky, wp // kx, kx).transpose(0, 2, 1, 3).reshape(hp // ky, wp // kx, ky * kx)
-        results.append(np.where(out > 0, np.take_along_axis(eb, arg, axis=-1)[..., 0], 0).astype(e.dtype))
-    return tuple(results)
+    chosen pixel. Edge blocks are padded with 'none' (`sgde_plugin.splat.min_pool_nonzero`)."""
+    return min_pool_nonzero(np.asarray(depth, dtype=np.float32), ky, kx, *extra)
 
 
 def _nearest_indices(affine: np.ndarray, src_hw: tuple[int, int], out_hw: tuple[int, int]):

@@ -1,26 +1,48 @@
-"""Acceptance rules of a calibrated window (the paper's): enough correspondences per pair (beta),
-convergence within the iteration limit, and no relative translation moved more than alpha."""
+"""Acceptance rules of a calibrated window (the paper's), with beta per observation pair.
+
+* beta: "we discard all correspondences between two observations if their number is fewer than beta".
+  An observation pair is two images (camera a at frame t, camera b at frame t'), so beta is applied to
+  each image pair's verified inliers (`PairMatches.observed_with`). An adjacent camera pair with at least
+  one surviving observation pair is `observed`; one without is `through ring`: its relative pose comes
+  from the other pairs through the loop constraint. The window is rejected (rule `min_correspondences`)
+  only when the observed pairs do not connect every camera of the rig, since then some camera's pose is
+  not constrained at all.
+* not_converged: the adjustment did not converge within the iteration limit (200).
+* translation_change (alpha): a relative translation that the images measure moved more than alpha from
+  the starting extrinsics: a mount does not move by decimetres, so such a move means the adjustment
+  followed wrong matches or an ill-conditioned geometry. It is checked on `observed` pairs only. A
+  `through ring` pair's relative pose is the composition of the observed ones around the ring; its change
+  is reported, and it cannot wander on its own because the mount priors of the adjustment hold what no
+  image measures. Firing alpha on it would reject a window for not seeing a pair, which beta already
+  decides.
+* non_finite: the adjustment produced a non-finite extrinsic.
+
+Every rule that fires is reported (`rules_fired`); the first one is the window's `rule`.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..rig import Rig
 
-# beta: minimum correspondences (RANSAC inliers over the window) per adjacent pair
+# beta per observation pair. The paper's values (LoFTR correspondences at full resolution):
 BETA_DDAD = 200
 BETA_NUSCENES = 50
-# The synthetic presets render textured streets; at scale 0.5 and T = 7 the weakest nuscenes pair
-# (CAM_BACK_RIGHT-CAM_BACK) keeps about 300 inliers, so 100 rejects only clearly broken windows.
-BETA_SYNTH = 100
+# Our default matcher, SIFT inside the predicted overlap, finds 15-150 verified inliers per image pair on
+# real narrow overlaps (DDAD) and on the synthetic presets' weakest pairs; fewer than 15 fit a spurious
+# essential matrix (the matcher's own floor was 15 before beta became per observation pair).
+BETA_SIFT = 15
+BETA_SYNTH = 100  # LoFTR on the synthetic presets
 BETA_DEFAULT = BETA_NUSCENES
 ALPHA_M = 0.3
 MAX_ITERATIONS = 200
 
 RULES = ("min_correspondences", "not_converged", "translation_change", "non_finite")
+OBSERVED, THROUGH_RING = "observed", "through ring"
 
 
 @dataclass(frozen=True)
@@ -37,8 +59,11 @@ class AcceptanceRules:
                 "alpha_m": self.max_translation_change_m}
 
 
-def default_beta(rig: Rig) -> int:
-    """beta for a rig: synthetic presets, DDAD (CAMERA_xx names), nuScenes (CAM_* names), else nuScenes'."""
+def default_beta(rig: Rig, matcher: str = "sift") -> int:
+    """beta per observation pair: SIFT's for the default matcher; with LoFTR the paper's for DDAD (CAMERA_xx
+    names) and nuScenes (CAM_* names), ours for the synthetic presets, else nuScenes'."""
+    if matcher != "loftr":
+        return BETA_SIFT
     synth = rig.extra.get("synth") if isinstance(rig.extra, Mapping) else None
     if isinstance(synth, Mapping) and "preset" in synth:
         return BETA_SYNTH
@@ -52,20 +77,70 @@ def default_beta(rig: Rig) -> int:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Accepted or not, the rule that fired and a one-line reason."""
+    """Accepted or not, the first rule that fired and its one-line reason, and every rule that fired."""
 
     accepted: bool
     rule: str | None = None
     reason: str | None = None
+    fired: tuple[tuple[str, str], ...] = field(default=())
+
+    @staticmethod
+    def of(fired: Sequence[tuple[str, str]]) -> Verdict:
+        """The verdict of a list of (rule, reason) that fired (accepted when empty)."""
+        if not fired:
+            return Verdict(True)
+        return Verdict(False, fired[0][0], fired[0][1], tuple(fired))
+
+    def then(self, other: Verdict) -> Verdict:
+        """This verdict followed by another check's: every rule that fired, the first one first."""
+        return Verdict.of([*self.fired_list(), *other.fired_list()])
+
+    def fired_list(self) -> list[tuple[str, str]]:
+        """(rule, reason) of every rule that fired."""
+        if self.fired:
+            return list(self.fired)
+        return [] if self.accepted else [(str(self.rule), str(self.reason))]
 
 
-def check_correspondences(counts: Mapping[tuple[str, str], int], rules: AcceptanceRules) -> Verdict:
-    """Reject when an adjacent pair has fewer than beta correspondences (checked before the adjustment)."""
-    for (a, b), n in counts.items():
-        if n < rules.min_correspondences:
-            return Verdict(False, "min_correspondences",
-                           f"pair {a}-{b} has {n} correspondences, fewer than beta = {rules.min_correspondences}")
-    return Verdict(True)
+def pair_status(counts: Mapping[tuple[str, str], int]) -> dict[tuple[str, str], str]:
+    """`observed` for a pair with at least one observation pair that passed beta, else `through ring`."""
+    return {p: OBSERVED if n > 0 else THROUGH_RING for p, n in counts.items()}
+
+
+def unconstrained_cameras(cameras: Sequence[str], observed: Sequence[tuple[str, str]], reference: str) -> list[str]:
+    """Cameras that no chain of observed pairs links to the reference camera."""
+    nbrs: dict[str, set[str]] = {c: set() for c in cameras}
+    for a, b in observed:
+        nbrs.setdefault(a, set()).add(b)
+        nbrs.setdefault(b, set()).add(a)
+    seen, stack = {reference}, [reference]
+    while stack:
+        for n in nbrs.get(stack.pop(), ()):
+            if n not in seen:
+                seen.add(n)
+                stack.append(n)
+    return [c for c in cameras if c not in seen]
+
+
+def check_correspondences(counts: Mapping[tuple[str, str], int], rules: AcceptanceRules,
+                          reference: str | None = None) -> Verdict:
+    """Reject when the pairs with observation pairs that passed beta leave a camera unconstrained.
+
+    `counts`: per adjacent pair, the number of its observation pairs with at least beta inliers. Checked
+    before the adjustment; a pair with none is constrained through the ring.
+    """
+    cams = list(dict.fromkeys(n for p in counts for n in p))
+    if not cams:
+        return Verdict(True)
+    ref = reference if reference in cams else cams[0]
+    observed = [p for p, n in counts.items() if n > 0]
+    lost = unconstrained_cameras(cams, observed, ref)
+    if not lost:
+        return Verdict(True)
+    unseen = ", ".join(f"{a}-{b}" for (a, b), n in counts.items() if n == 0)
+    return Verdict(False, "min_correspondences",
+                   f"camera(s) {', '.join(lost)} not linked to {ref} by any observation pair with at least "
+                   f"beta = {rules.min_correspondences} inliers (pairs without one: {unseen})")
 
 
 def translation_changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
@@ -83,16 +158,16 @@ def check_result(
     converged: bool, iterations: int, before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
     pairs: Sequence[tuple[str, str]], rules: AcceptanceRules,
 ) -> Verdict:
-    """Reject a result that did not converge in time, is not finite, or moved a relative translation > alpha."""
+    """Reject a result that is not finite, did not converge in time, or moved a relative translation of one
+    of `pairs` (the observed ones) by more than alpha; every rule that fires is listed."""
+    fired: list[tuple[str, str]] = []
     if not all(np.all(np.isfinite(T)) for T in after.values()):
-        return Verdict(False, "non_finite", "the adjustment produced a non-finite extrinsic")
+        return Verdict.of([("non_finite", "the adjustment produced a non-finite extrinsic")])
     if not converged or iterations > rules.max_iterations:
-        return Verdict(False, "not_converged", f"no convergence within {rules.max_iterations} iterations")
-    moved = translation_changes(before, after, pairs)
-    if moved:
-        (a, b), worst = max(moved.items(), key=lambda kv: kv[1])
-        if worst > rules.max_translation_change_m:
-            return Verdict(False, "translation_change",
-                           f"relative translation {a}-{b} moved {worst:.3f} m, more than alpha = "
-                           f"{rules.max_translation_change_m} m")
-    return Verdict(True)
+        fired.append(("not_converged", f"no convergence within {rules.max_iterations} iterations"))
+    alpha = rules.max_translation_change_m
+    for (a, b), moved in sorted(translation_changes(before, after, pairs).items(), key=lambda kv: -kv[1]):
+        if moved > alpha:
+            fired.append(("translation_change",
+                          f"relative translation {a}-{b} moved {moved:.3f} m, more than alpha = {alpha} m"))
+    return Verdict.of(fired)

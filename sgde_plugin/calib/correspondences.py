@@ -37,7 +37,7 @@ class MatchConfig:
     ransac_threshold_px: float = 1.0
     ransac_prob: float = 0.999
     max_per_view_pair: int = 150
-    min_per_view_pair: int = 15
+    min_per_view_pair: int = 8
     sigma_per_size: float = 1.0 / 32.0
     sigma_floor_px: float = 0.1
     loftr_sigma_px: float = 0.5
@@ -48,6 +48,26 @@ class MatchConfig:
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass(frozen=True)
+class ObservationPair:
+    """One observation pair (two images: camera a at window frame t, camera b at t2) and its match counts.
+
+    `inliers` is what the verification kept, `kept` how many of them the pair's PairMatches holds (0 when
+    fewer than the matcher's floor, at most `max_per_view_pair`)."""
+
+    t: int
+    t2: int
+    tentative: int
+    gated: int
+    inliers: int
+    kept: int
+
+    def to_dict(self) -> dict:
+        """JSON-able counts."""
+        return {"t": self.t, "t2": self.t2, "tentative": self.tentative, "after_gate": self.gated,
+                "inliers": self.inliers}
 
 
 @dataclass
@@ -70,6 +90,7 @@ class PairMatches:
     gated: int = 0
     inliers: int = 0
     view_pairs: int = 0
+    observation_pairs: list[ObservationPair] = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.frame_a.shape[0])
@@ -80,7 +101,16 @@ class PairMatches:
         return PairMatches(self.cam_a, self.cam_b, self.frame_a[keep], self.frame_b[keep], self.uv_a[keep],
                            self.uv_b[keep], self.rays_a[keep], self.rays_b[keep], self.sigma_a[keep],
                            self.sigma_b[keep], self.kp_a[keep], self.kp_b[keep], self.tentative, self.gated, n,
-                           self.view_pairs)
+                           self.view_pairs, list(self.observation_pairs))
+
+    def observed_with(self, beta: int) -> PairMatches:
+        """Only the correspondences of observation pairs with at least `beta` inliers (the paper's beta)."""
+        good = {(o.t, o.t2) for o in self.observation_pairs if o.inliers >= beta and o.kept > 0}
+        keep = np.array([(int(x), int(y)) in good for x, y in zip(self.frame_a, self.frame_b)], dtype=bool)
+        out = self.select(keep)
+        out.inliers = int(sum(o.inliers for o in self.observation_pairs if (o.t, o.t2) in good))
+        out.view_pairs = len(good)
+        return out
 
     def same_time(self) -> PairMatches:
         """Only the correspondences between images of the same frame."""
@@ -103,6 +133,26 @@ def _empty(a: str, b: str) -> PairMatches:
     return PairMatches(a, b, zi, zi, z2, z2, z3, z3, z, z, zi, zi)
 
 
+@dataclass
+class Tentative:
+    """Tentative matches of one observation pair (camera a at frame t, camera b at frame t2)."""
+
+    uv_a: np.ndarray
+    uv_b: np.ndarray
+    sigma_a: np.ndarray
+    sigma_b: np.ndarray
+    kp_a: np.ndarray
+    kp_b: np.ndarray
+
+
+@dataclass
+class Verified:
+    """The verified correspondences of one observation pair and its counts (`part` is None when none)."""
+
+    pair: ObservationPair
+    part: dict[str, np.ndarray] | None
+
+
 def find_correspondences(
     cameras: Sequence[Camera],
     pairs: Sequence[tuple[str, str]],
@@ -117,128 +167,184 @@ def find_correspondences(
 
     `image(t, camera)` returns the RGB image of a camera at window frame t; `masks` (True = use) hides the
     ego body. The initial extrinsics of `cameras` predict the overlaps and the loose epipolar gate.
+    `ego_to_world` may also be (T, M, 4, 4): each camera's own ego pose at its capture (cameras in the
+    order of `cameras`). Stages: overlap prediction, features, tentative matches and verification per
+    observation pair (two images), assembly per camera pair.
     """
     cfg = config or MatchConfig()
     if cfg.matcher not in MATCHERS:
         raise InputError(None, "matcher", f"unknown matcher {cfg.matcher!r} (expected {', '.join(MATCHERS)})")
     timings = timings or Timings()
     cams = {c.name: c for c in cameras}
-    T = ego_to_world.shape[0]
-    rng = np.random.default_rng(cfg.seed)
+    ego = capture_poses(ego_to_world, len(cameras))
+    T = ego.shape[0]
+    ego_of = {c.name: ego[:, i] for i, c in enumerate(cameras)}
+    grids = predict_overlaps(cams, pairs, ego_of, cfg, timings)
+    images = _ImageCache(image)
     loftr = load_loftr(cfg.loftr_weights) if cfg.matcher == "loftr" else None
+    feats = None
+    if loftr is None:
+        involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
+        feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress)
+    poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
+    match = (lambda a, b, t, t2: _sift_tentative(feats, grids, a, b, t, t2, cfg)) if loftr is None else (
+        lambda a, b, t, t2: _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg))
+    verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress)
+    return [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
 
+
+def _verify_all(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], T: int, poses: dict[str, np.ndarray],
+                match: Callable[[str, str, int, int], Tentative], cfg: MatchConfig, timings: Timings,
+                show_progress: bool | None) -> dict[tuple[str, str], list[Verified]]:
+    """Tentative matches and verification of every observation pair (all T x T, or same-frame only)."""
+    rng = np.random.default_rng(cfg.seed)
+    verified: dict[tuple[str, str], list[Verified]] = {(a, b): [] for a, b in pairs}
+    jobs = [(a, b, t, t2) for a, b in pairs for t in range(T) for t2 in range(T) if cfg.cross_time or t == t2]
+    for a, b, t, t2 in progress(jobs, desc="calibrate: matching", total=len(jobs), enabled=show_progress):
+        t0 = time.perf_counter()
+        tent = match(a, b, t, t2)
+        timings.add("matching", t0)
+        t0 = time.perf_counter()
+        rel = np.linalg.inv(poses[b][t2]) @ poses[a][t]  # cam a at t -> cam b at t2 (initial)
+        verified[(a, b)].append(verify_observation_pair(cams[a], cams[b], t, t2, tent, rel, cfg, rng))
+        timings.add("ransac", t0)
+    return verified
+
+
+def capture_poses(ego_to_world: np.ndarray, n_cameras: int) -> np.ndarray:
+    """Ego poses per frame and camera (T, M, 4, 4) from (T, 4, 4) (synchronous) or (T, M, 4, 4)."""
+    ego = np.asarray(ego_to_world, dtype=np.float64)
+    if ego.ndim == 3:
+        return np.repeat(ego[:, None], n_cameras, axis=1)
+    if ego.ndim != 4 or ego.shape[1] != n_cameras:
+        raise ValueError(f"ego poses must be (T, 4, 4) or (T, {n_cameras}, 4, 4), got {ego.shape}")
+    return ego
+
+
+class _ImageCache:
+    """Each image is read once."""
+
+    def __init__(self, image: Callable[[int, str], np.ndarray]) -> None:
+        self.image, self.cache = image, {}
+
+    def __call__(self, t: int, name: str) -> np.ndarray:
+        if (t, name) not in self.cache:
+            self.cache[(t, name)] = self.image(t, name)
+        return self.cache[(t, name)]
+
+
+def predict_overlaps(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], ego_of: dict[str, np.ndarray],
+                     cfg: MatchConfig, timings: Timings) -> dict[tuple[str, str], OverlapGrid]:
+    """Overlap grids of every adjacent pair in both directions, from the initial extrinsics."""
     t0 = time.perf_counter()
     grids: dict[tuple[str, str], OverlapGrid] = {}
     for a, b in pairs:
-        grids[(a, b)] = overlap_grid(cams[a], cams[b], ego_to_world, cfg.margin_px)
-        grids[(b, a)] = overlap_grid(cams[b], cams[a], ego_to_world, cfg.margin_px)
+        grids[(a, b)] = overlap_grid(cams[a], cams[b], ego_of[a], cfg.margin_px, ego_to_world_b=ego_of[b])
+        grids[(b, a)] = overlap_grid(cams[b], cams[a], ego_of[b], cfg.margin_px, ego_to_world_b=ego_of[a])
     timings.add("matching", t0)
+    return grids
 
-    involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
-    cache: dict[tuple[int, str], np.ndarray] = {}
 
-    def img(t: int, name: str) -> np.ndarray:
-        """Each image is read once."""
-        if (t, name) not in cache:
-            cache[(t, name)] = image(t, name)
-        return cache[(t, name)]
+def detect_features(
+    cams: dict[str, Camera], involved: Sequence[str], grids: dict[tuple[str, str], OverlapGrid], T: int,
+    images: Callable[[int, str], np.ndarray], masks: dict[str, np.ndarray] | None, cfg: MatchConfig,
+    timings: Timings, show_progress: bool | None,
+) -> dict[tuple[int, str, str], Keypoints]:
+    """SIFT keypoints per (frame, camera, neighbour): on the raw image inside the predicted overlaps, or on a
+    virtual pinhole view aimed at the overlap (fisheyes)."""
+    t0 = time.perf_counter()
+    feats: dict[tuple[int, str, str], Keypoints] = {}
+    for name in progress(involved, desc="calibrate: features", enabled=show_progress):
+        cam = cams[name]
+        neighbours = [o for (x, o) in grids if x == name]
+        views = {}
+        if cfg.fisheye_views and not isinstance(cam.intrinsics, Pinhole):
+            views = {o: v for o in neighbours if (v := overlap_view(cam, grids[(name, o)])) is not None}
+        static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
+        raw = [o for o in neighbours if o not in views]
+        det = np.zeros((cam.height, cam.width), np.uint8)
+        for o in raw:
+            det |= grids[(name, o)].any_mask(cam.width, cam.height)
+        if static is not None:
+            det[~static] = 0
+        for t in range(T):
+            picture = images(t, name)
+            if raw:
+                kp = sift_features(picture, det, cfg.max_features, cfg.feature_scale, cfg.contrast_threshold)
+                for o in raw:
+                    feats[(t, name, o)] = kp
+            for slot, (o, view) in enumerate(views.items()):
+                feats[(t, name, o)] = _view_features(cam, view, picture, static, slot, cfg)
+    timings.add("features", t0)
+    return feats
 
-    feats: dict[tuple[int, str, str], Keypoints] = {}  # (frame, camera, neighbour)
-    if loftr is None:
-        t0 = time.perf_counter()
-        for name in progress(involved, desc="calibrate: features", enabled=show_progress):
-            cam = cams[name]
-            neighbours = [o for (x, o) in grids if x == name]
-            views = {}
-            if cfg.fisheye_views and not isinstance(cam.intrinsics, Pinhole):
-                views = {o: v for o in neighbours if (v := overlap_view(cam, grids[(name, o)])) is not None}
-            static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
-            raw = [o for o in neighbours if o not in views]
-            det = np.zeros((cam.height, cam.width), np.uint8)
-            for o in raw:
-                det |= grids[(name, o)].any_mask(cam.width, cam.height)
-            if static is not None:
-                det[~static] = 0
-            for t in range(T):
-                picture = img(t, name)
-                if raw:
-                    kp = sift_features(picture, det, cfg.max_features, cfg.feature_scale, cfg.contrast_threshold)
-                    for o in raw:
-                        feats[(t, name, o)] = kp
-                for slot, (o, view) in enumerate(views.items()):
-                    feats[(t, name, o)] = _view_features(cam, view, picture, static, slot, cfg)
-        timings.add("features", t0)
 
-    out = []
-    jobs = [(a, b, t, t2) for a, b in pairs for t in range(T) for t2 in range(T) if cfg.cross_time or t == t2]
-    collected: dict[tuple[str, str], list] = {(a, b): [] for a, b in pairs}
-    counts = {(a, b): [0, 0, 0] for a, b in pairs}
-    poses = {n: np.einsum("tij,jk->tik", ego_to_world, cams[n].sensor_to_ego) for n in involved}
-    for a, b, t, t2 in progress(jobs, desc="calibrate: matching", total=len(jobs), enabled=show_progress):
-        ca, cb = cams[a], cams[b]
-        t0 = time.perf_counter()
-        if loftr is None:
-            fa, fb = feats[(t, a, b)], feats[(t2, b, a)]
-            sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv))
-            sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv))
-            ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
-            uva, uvb = sa.uv[ia], sb.uv[ib]
-            ka, kb = sa.index[ia], sb.index[ib]
-            siga = np.maximum(cfg.sigma_floor_px, sa.size[ia] * cfg.sigma_per_size)
-            sigb = np.maximum(cfg.sigma_floor_px, sb.size[ib] * cfg.sigma_per_size)
-        else:
-            uva, uvb = loftr_match(loftr, img(t, a), img(t2, b), _box(grids[(a, b)], t, t2, ca),
-                                   _box(grids[(b, a)], t2, t, cb))
-            keep = grids[(a, b)].lookup(t, t2, uva) & grids[(b, a)].lookup(t2, t, uvb)
-            if masks is not None:
-                keep &= _in_mask(masks.get(a), uva) & _in_mask(masks.get(b), uvb)
-            uva, uvb = uva[keep], uvb[keep]
-            siga = sigb = np.full(uva.shape[0], cfg.loftr_sigma_px)
-            ka = kb = np.full(uva.shape[0], -1)
-        timings.add("matching", t0)
-        t0 = time.perf_counter()
-        ra, va = ca.intrinsics.unproject(uva)
-        rb, vb = cb.intrinsics.unproject(uvb)
-        ok = va & vb
-        counts[(a, b)][0] += int(ok.sum())
-        sel = np.flatnonzero(ok)
-        rel = np.linalg.inv(poses[b][t2]) @ poses[a][t]  # cam a at t -> cam b at t2 (initial)
-        gate = epipolar_angle_deg(ra[sel], rb[sel], rel[:3, :3], rel[:3, 3]) <= cfg.epipolar_gate_deg
-        sel = sel[gate]
-        counts[(a, b)][1] += int(gate.sum())
-        focal = min(pixels_per_radian(ca.intrinsics), pixels_per_radian(cb.intrinsics))
-        inl = essential_inliers(ra[sel], rb[sel], cfg.ransac_threshold_px, focal, cfg.ransac_prob, seed=cfg.seed)
-        if inl.sum() < cfg.min_per_view_pair:  # a handful of matches fits a spurious essential matrix
-            inl[:] = False
-        idx = sel[inl]
-        if idx.size:
-            counts[(a, b)][2] += 1
-        if idx.size > cfg.max_per_view_pair:
-            idx = np.sort(rng.choice(idx, cfg.max_per_view_pair, replace=False))
-        if idx.size:
-            collected[(a, b)].append({
-                "t": t, "t2": t2, "uva": uva[idx], "uvb": uvb[idx], "ra": ra[idx], "rb": rb[idx],
-                "siga": siga[idx], "sigb": sigb[idx], "ka": ka[idx], "kb": kb[idx], "inliers": int(inl.sum()),
-            })
-        timings.add("ransac", t0)
+def _sift_tentative(feats: dict, grids: dict, a: str, b: str, t: int, t2: int, cfg: MatchConfig) -> Tentative:
+    """Mutual ratio-test matches of the keypoints inside each other's predicted overlap."""
+    fa, fb = feats[(t, a, b)], feats[(t2, b, a)]
+    sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv))
+    sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv))
+    ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
+    return Tentative(sa.uv[ia], sb.uv[ib], np.maximum(cfg.sigma_floor_px, sa.size[ia] * cfg.sigma_per_size),
+                     np.maximum(cfg.sigma_floor_px, sb.size[ib] * cfg.sigma_per_size), sa.index[ia], sb.index[ib])
 
-    for a, b in pairs:
-        parts = collected[(a, b)]
-        if not parts:
-            pm = _empty(a, b)
-        else:
-            cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k not in ("t", "t2", "inliers")}
-            pm = PairMatches(
-                a, b,
-                np.concatenate([np.full(p["uva"].shape[0], p["t"]) for p in parts]).astype(np.int64),
-                np.concatenate([np.full(p["uva"].shape[0], p["t2"]) for p in parts]).astype(np.int64),
-                cat["uva"], cat["uvb"], cat["ra"], cat["rb"], cat["siga"], cat["sigb"],
-                cat["ka"].astype(np.int64), cat["kb"].astype(np.int64),
-            )
-            pm.inliers = int(sum(p["inliers"] for p in parts))
-        pm.tentative, pm.gated, pm.view_pairs = counts[(a, b)]
-        out.append(pm)
-    return out
+
+def _loftr_tentative(loftr, images, grids: dict, cams: dict, masks, a: str, b: str, t: int, t2: int,
+                     cfg: MatchConfig) -> Tentative:
+    """LoFTR matches inside the boxes of the predicted overlaps, outside the static masks."""
+    uva, uvb = loftr_match(loftr, images(t, a), images(t2, b), _box(grids[(a, b)], t, t2, cams[a]),
+                           _box(grids[(b, a)], t2, t, cams[b]))
+    keep = grids[(a, b)].lookup(t, t2, uva) & grids[(b, a)].lookup(t2, t, uvb)
+    if masks is not None:
+        keep &= _in_mask(masks.get(a), uva) & _in_mask(masks.get(b), uvb)
+    n = int(keep.sum())
+    sig, kp = np.full(n, cfg.loftr_sigma_px), np.full(n, -1)
+    return Tentative(uva[keep], uvb[keep], sig, sig, kp, kp)
+
+
+def verify_observation_pair(ca: Camera, cb: Camera, t: int, t2: int, tent: Tentative, rel: np.ndarray,
+                            cfg: MatchConfig, rng: np.random.Generator) -> Verified:
+    """Loose epipolar gate from the initial relative pose `rel` (a at t -> b at t2), then USAC on the
+    essential matrix; at most `max_per_view_pair` inliers are kept (a random subset)."""
+    ra, va = ca.intrinsics.unproject(tent.uv_a)
+    rb, vb = cb.intrinsics.unproject(tent.uv_b)
+    sel = np.flatnonzero(va & vb)
+    tentative = int(sel.size)
+    gate = epipolar_angle_deg(ra[sel], rb[sel], rel[:3, :3], rel[:3, 3]) <= cfg.epipolar_gate_deg
+    sel = sel[gate]
+    focal = min(pixels_per_radian(ca.intrinsics), pixels_per_radian(cb.intrinsics))
+    inl = essential_inliers(ra[sel], rb[sel], cfg.ransac_threshold_px, focal, cfg.ransac_prob, seed=cfg.seed)
+    n_inl = int(inl.sum())
+    if n_inl < cfg.min_per_view_pair:  # a handful of matches fits a spurious essential matrix
+        return Verified(ObservationPair(t, t2, tentative, int(sel.size), n_inl, 0), None)
+    idx = sel[inl]
+    if idx.size > cfg.max_per_view_pair:
+        idx = np.sort(rng.choice(idx, cfg.max_per_view_pair, replace=False))
+    part = {"uva": tent.uv_a[idx], "uvb": tent.uv_b[idx], "ra": ra[idx], "rb": rb[idx], "siga": tent.sigma_a[idx],
+            "sigb": tent.sigma_b[idx], "ka": tent.kp_a[idx], "kb": tent.kp_b[idx]}
+    return Verified(ObservationPair(t, t2, tentative, int(sel.size), n_inl, int(idx.size)), part)
+
+
+def assemble_pair(a: str, b: str, verified: Sequence[Verified]) -> PairMatches:
+    """One PairMatches from the verified observation pairs of camera pair (a, b)."""
+    parts = [(v.pair, v.part) for v in verified if v.part is not None]
+    if not parts:
+        pm = _empty(a, b)
+    else:
+        cat = {k: np.concatenate([p[k] for _, p in parts]) for k in parts[0][1]}
+        pm = PairMatches(
+            a, b,
+            np.concatenate([np.full(p["uva"].shape[0], o.t) for o, p in parts]).astype(np.int64),
+            np.concatenate([np.full(p["uva"].shape[0], o.t2) for o, p in parts]).astype(np.int64),
+            cat["uva"], cat["uvb"], cat["ra"], cat["rb"], cat["siga"], cat["sigb"],
+            cat["ka"].astype(np.int64), cat["kb"].astype(np.int64),
+        )
+        pm.inliers = int(sum(o.inliers for o, _ in parts))
+    pm.tentative = int(sum(v.pair.tentative for v in verified))
+    pm.gated = int(sum(v.pair.gated for v in verified))
+    pm.view_pairs = len(parts)
+    pm.observation_pairs = [v.pair for v in verified]
+    return pm
 
 
 _VIEW_INDEX_OFFSET = 1_000_000  # keypoint ids of the n-th virtual view of an image start at (n + 1) * this

@@ -245,7 +245,11 @@ def _chain(
 ) -> MethodResult:
     cams = {c.name: c for c in cameras}
     by_pair = {frozenset((m.cam_a, m.cam_b)): m for m in matches}
-    tree = spanning_tree(list(cams), pairs, reference)
+    # chain along observed pairs first; a camera they do not reach keeps its input pose relative to its parent
+    observed = [p for p in pairs if len(by_pair[frozenset(p)]) >= MIN_PAIR_MATCHES]
+    tree = spanning_tree(list(cams), observed, reference)
+    reached = {reference} | {c for _, c in tree}
+    tree += [e for e in spanning_tree(list(cams), pairs, reference) if e[1] not in reached]
     out = {reference: cams[reference].sensor_to_ego.copy()}
     result = MethodResult(out)
     iterations, converged, msgs, rms_b, rms_a = 0, True, [], [], []

@@ -66,8 +66,11 @@ def overlap_grid(
     margin_px: float = 24.0,
     stride: int = 16,
     depths_m: tuple[float, ...] = DEFAULT_DEPTHS_M,
+    ego_to_world_b: np.ndarray | None = None,
 ) -> OverlapGrid:
-    """Overlap masks of camera A against camera B for every (t, t') pair of the window's ego poses."""
+    """Overlap masks of camera A against camera B for every (t, t') pair of the window's ego poses.
+
+    `ego_to_world` are the ego poses at camera A's captures, `ego_to_world_b` at B's (default: the same)."""
     ma, mb = cam_a.intrinsics, cam_b.intrinsics
     wc = int(np.ceil(ma.width / stride)) + 1
     hc = int(np.ceil(ma.height / stride)) + 1
@@ -78,7 +81,8 @@ def overlap_grid(
     margin = margin_px + stride
     T = ego_to_world.shape[0]
     A = np.einsum("tij,jk->tik", ego_to_world, cam_a.sensor_to_ego)  # cam a -> world per frame
-    B = np.einsum("tij,jk->tik", ego_to_world, cam_b.sensor_to_ego)
+    ego_b = ego_to_world if ego_to_world_b is None else ego_to_world_b
+    B = np.einsum("tij,jk->tik", ego_b, cam_b.sensor_to_ego)
     Binv = np.linalg.inv(B)
     rel = np.einsum("sij,tjk->tsik", Binv, A)  # (t, t2): cam a at t -> cam b at t2
     D, P = len(depths_m), rays.shape[0]

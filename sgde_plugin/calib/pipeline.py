@@ -13,8 +13,8 @@ entry of `windows` has its own verdict, the rule that fired and a one-line reaso
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -24,7 +24,16 @@ from ..errors import InputError
 from ..geometry import ORTHONORMAL_TOL, rotation_angle_deg, rotation_error
 from ..rig import Frame, Rig
 from ..stereo.rectify import torch_threads
-from .acceptance import AcceptanceRules, Verdict, check_correspondences, check_result, default_beta
+from .acceptance import (
+    OBSERVED,
+    THROUGH_RING,
+    AcceptanceRules,
+    Verdict,
+    check_correspondences,
+    check_result,
+    default_beta,
+    translation_changes,
+)
 from .ba import AdjustConfig
 from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences
 from .methods import METHODS, MethodResult, run_method
@@ -78,21 +87,29 @@ def _windows(frames: tuple[Frame, ...], size: int) -> list[tuple[Frame, ...]]:
     return [ordered[i : i + size] for i in range(0, len(ordered), size)]
 
 
-def _pair_rows(matches: list[PairMatches], result: MethodResult | None) -> list[dict]:
+def _pair_rows(matches: list[PairMatches], used: list[PairMatches], result: MethodResult | None,
+               moved: Mapping[tuple[str, str], float], beta: int) -> list[dict]:
     rows = []
-    for pm in matches:
+    for pm, pu in zip(matches, used):
         key = (pm.cam_a, pm.cam_b)
-        used = result is not None and key in result.pair_rms_px
+        in_ba = result is not None and key in result.pair_rms_px
+        rms = result.pair_rms_px.get(key) if in_ba else None
         rows.append({
             "a": pm.cam_a,
             "b": pm.cam_b,
+            "status": OBSERVED if pu.view_pairs > 0 else THROUGH_RING,
             "tentative": int(pm.tentative),
             "after_gate": int(pm.gated),
             "inliers": int(pm.inliers),
+            "inliers_used": int(pu.inliers),
             "image_pairs_with_inliers": int(pm.view_pairs),
-            "used_in_adjustment": bool(used),
-            "adjusted_correspondences": int(result.pair_used_matches.get(key, 0)) if used else 0,
-            "rms_px": float(result.pair_rms_px[key]) if used and np.isfinite(result.pair_rms_px[key]) else None,
+            "observation_pairs_passing_beta": int(pu.view_pairs),
+            "beta": int(beta),
+            "used_in_adjustment": bool(in_ba and result.pair_used_matches.get(key, 0) > 0),
+            "adjusted_correspondences": int(result.pair_used_matches.get(key, 0)) if in_ba else 0,
+            "rms_px": float(rms) if rms is not None and np.isfinite(rms) else None,
+            "translation_change_m": float(moved.get(key, 0.0)),
+            "observation_pairs": [[o.t, o.t2, o.inliers] for o in pm.observation_pairs if o.tentative > 0],
         })
     return rows
 
@@ -118,16 +135,38 @@ def calibrate(
     """Calibrate the extrinsics of a rig over windows of its frames; returns the refined rig and its report.
 
     images(frame_id, camera) -> RGB image (default: the rig folder's files). Options: window (T, default
-    7), loftr_weights, rules (AcceptanceRules; default beta for the rig's data set, see
+    7; a shorter last window, or a rig with fewer frames, is calibrated with what it has), loftr_weights,
+    rules (AcceptanceRules; default beta per observation pair for the matcher and data set, see
     acceptance.default_beta, 200 iterations, alpha = 0.3 m), match_config, adjust_config, reference,
     timings, show_progress, match_cache (a dict shared between calls on the same images, e.g. to compare
     methods: correspondences are reused when window, matcher settings and starting extrinsics agree).
     """
     with torch_threads(1):
-        return _calibrate(rig, images, method, frames, matcher, **options)
+        setup = _setup(rig, images, method, frames, matcher, **options)
+        return _calibrate(rig, setup)
 
 
-def _calibrate(
+@dataclass
+class Setup:
+    """The checked settings of one `calibrate` call."""
+
+    method: str
+    matcher: str
+    frames: tuple[Frame, ...]
+    window: int
+    rules: AcceptanceRules
+    match: MatchConfig
+    adjust: AdjustConfig
+    reference: str
+    load: Callable[[str, str], np.ndarray]
+    masks: dict[str, np.ndarray]
+    timings: Timings
+    show_progress: bool | None
+    match_cache: dict | None
+    pairs: list[tuple[str, str]]
+
+
+def _setup(
     rig: Rig,
     images: Callable[[str, str], np.ndarray] | None = None,
     method: str = "glc",
@@ -143,7 +182,8 @@ def _calibrate(
     timings: Timings | None = None,
     show_progress: bool | None = None,
     match_cache: dict | None = None,
-) -> tuple[Rig, dict]:
+) -> Setup:
+    """Check the options (InputError for bad ones) and fill in the defaults."""
     if method not in METHODS:
         raise InputError(None, "method", f"unknown method {method!r} (expected one of {', '.join(METHODS)})")
     if matcher not in MATCHERS:
@@ -159,100 +199,157 @@ def _calibrate(
     ref = reference or reference_camera(rig)
     if ref not in rig.camera_names:
         raise InputError(None, "reference", f"camera {ref!r} does not exist")
-    rules = rules or AcceptanceRules(min_correspondences=default_beta(rig))
+    rules = rules or AcceptanceRules(min_correspondences=default_beta(rig, matcher))
     mcfg = replace(match_config or MatchConfig(), matcher=matcher)
     if loftr_weights is not None:
         mcfg = replace(mcfg, loftr_weights=str(loftr_weights))
     acfg = replace(adjust_config or AdjustConfig(), max_iterations=rules.max_iterations)
-    load = images or rig.load_image
     masks = {c: m for c in rig.camera_names if (m := rig.load_mask(c)) is not None}
-    timings = timings or Timings()
-    pair_names = list(rig.pairs)
-    involved = {n for p in pair_names for n in p}
+    return Setup(method, matcher, tuple(selected), window, rules, mcfg, acfg, ref, images or rig.load_image, masks,
+                 timings or Timings(), show_progress, match_cache, list(rig.pairs))
 
+
+@dataclass
+class WindowResult:
+    """One window's outcome: verdict, extrinsics after it, and its report entry."""
+
+    verdict: Verdict
+    after: dict[str, np.ndarray]
+    report: dict[str, Any]
+
+
+def window_ego_poses(rig: Rig, frames: Sequence[Frame], cameras: Sequence[str]) -> np.ndarray:
+    """Ego poses of a window: (T, 4, 4) for a synchronous rig, (T, M, 4, 4) when cameras have their own
+    capture poses (in the order of `cameras`)."""
+    capture = getattr(rig, "capture_ego_to_world", None)
+    if capture is None:
+        return np.stack([f.ego_to_world for f in frames])
+    per = np.stack([[np.asarray(capture(f.id, c), dtype=np.float64) for c in cameras] for f in frames])
+    if np.allclose(per, per[:, :1]):
+        return per[:, 0]
+    return per
+
+
+def _match_window(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
+                  start: Mapping[str, np.ndarray]) -> list[PairMatches]:
+    """Correspondences of a window (from the match cache when the same window was matched from the same start)."""
+    ids = [f.id for f in win]
+    key = (tuple(ids), repr(setup.match), tuple(start[n].tobytes() for n in sorted(start)))
+    if setup.match_cache is not None and key in setup.match_cache:
+        return setup.match_cache[key]
+    matches = find_correspondences(cams, setup.pairs, ego,
+                                   lambda t, c: setup.load(ids[t], c), setup.masks or None, setup.match,
+                                   setup.timings, setup.show_progress)
+    if setup.match_cache is not None:
+        setup.match_cache[key] = matches
+    return matches
+
+
+@dataclass
+class Judged:
+    """What a window's calibration produced: verdict, method result (None when not run), matches before and
+    after beta per observation pair."""
+
+    verdict: Verdict
+    result: MethodResult | None
+    matches: list[PairMatches]
+    used: list[PairMatches]
+
+
+def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
+           start: dict[str, np.ndarray]) -> Judged:
+    """Match, apply beta per observation pair, check the ring is constrained, adjust, check the result."""
+    if setup.method == "none":
+        return Judged(Verdict(True), MethodResult(dict(start), message="input extrinsics kept"), [], [])
+    matches = _match_window(setup, cams, win, ego, start)
+    used = [pm.observed_with(setup.rules.min_correspondences) for pm in matches]
+    verdict = check_correspondences({(u.cam_a, u.cam_b): u.view_pairs for u in used}, setup.rules, setup.reference)
+    if not verdict.accepted:
+        return Judged(verdict, None, matches, used)
+    t0 = time.perf_counter()
+    result = run_method(setup.method, cams, setup.pairs, used, ego, setup.reference, setup.adjust)
+    setup.timings.add("adjustment", t0)
+    observed = [(u.cam_a, u.cam_b) for u in used if u.view_pairs > 0]
+    verdict = check_result(result.converged, result.iterations, start, {**start, **result.sensor_to_ego}, observed,
+                           setup.rules)
+    return Judged(verdict, result, matches, used)
+
+
+def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...],
+                      start: dict[str, np.ndarray]) -> WindowResult:
+    """Calibrate and judge one window; its report entry."""
+    involved = [c.name for c in rig.cameras if any(c.name in p for p in setup.pairs)]
+    cams = [Camera(c.name, c.intrinsics, start[c.name]) for c in rig.cameras if c.name in involved]
+    ego = window_ego_poses(rig, win, involved)
+    t_win = time.perf_counter()
+    before = dict(setup.timings.seconds)
+    j = _judge(rig, setup, cams, win, ego, start)
+    res = j.result or MethodResult(dict(start), iterations=0, converged=False)
+    after = {**start, **res.sensor_to_ego}
+    rot, trans = _changes(start, after, setup.pairs)
+    report = {
+        "index": k, "frames": [f.id for f in win], "timestamp_us": int(win[0].timestamp_us),
+        "accepted": j.verdict.accepted,
+        "rule": j.verdict.rule,
+        "reason": j.verdict.reason,
+        "rules_fired": [{"rule": r, "reason": why} for r, why in j.verdict.fired_list()],
+        "pairs": _pair_rows(j.matches, j.used, j.result, translation_changes(start, after, setup.pairs),
+                            setup.rules.min_correspondences),
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "message": res.message,
+        "rms_px_before": _num(res.rms_before_px),
+        "rms_px_after": _num(res.rms_after_px),
+        "max_rotation_change_deg": rot,
+        "max_translation_change_m": trans,
+        "seconds": {s: round(setup.timings.seconds.get(s, 0.0) - before.get(s, 0.0), 3)
+                    for s in setup.timings.seconds},
+        "wall_seconds": round(time.perf_counter() - t_win, 3),
+    }
+    return WindowResult(j.verdict, after, report)
+
+
+def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
     old_block = rig.extra.get("calibration") if isinstance(rig.extra, Mapping) else None
     history: list[dict] = list(old_block.get("history", [])) if isinstance(old_block, Mapping) else []
     input_ext = {c.name: np.asarray(c.sensor_to_ego, dtype=np.float64) for c in rig.cameras}
     current = dict(input_ext)
     reports = []
-    for k, win in enumerate(_windows(tuple(selected), window)):
+    for k, win in enumerate(_windows(setup.frames, setup.window)):
         ts = int(win[0].timestamp_us)
-        start = calibration_at({"history": history}, ts) or dict(current)
-        start = {**input_ext, **start}
-        cams = [Camera(c.name, c.intrinsics, start[c.name]) for c in rig.cameras if c.name in involved]
-        ego = np.stack([f.ego_to_world for f in win])
-        win_report: dict[str, Any] = {
-            "index": k, "frames": [f.id for f in win], "timestamp_us": ts,
-        }
-        t_win = time.perf_counter()
-        before = dict(timings.seconds)
-        result: MethodResult | None = None
-        matches: list[PairMatches] = []
-        if method == "none":
-            verdict = Verdict(True, None, None)
-            result = MethodResult({n: start[n] for n in start}, message="input extrinsics kept")
-        else:
-            ids = [f.id for f in win]
-            key = (tuple(ids), repr(mcfg), tuple(start[n].tobytes() for n in sorted(start)))
-            if match_cache is not None and key in match_cache:
-                matches = match_cache[key]
-            else:
-                matches = find_correspondences(cams, pair_names, ego, lambda t, c, ids=ids: load(ids[t], c),
-                                               masks or None, mcfg, timings, show_progress)
-                if match_cache is not None:
-                    match_cache[key] = matches
-            verdict = check_correspondences({(m.cam_a, m.cam_b): m.inliers for m in matches}, rules)
-            if verdict.accepted:
-                t0 = time.perf_counter()
-                result = run_method(method, cams, pair_names, matches, ego, ref, acfg)
-                timings.add("adjustment", t0)
-                after = {**start, **result.sensor_to_ego}
-                verdict = check_result(result.converged, result.iterations, start, after, pair_names, rules)
-        after = {**start, **result.sensor_to_ego} if result is not None else dict(start)
-        rot, trans = _changes(start, after, pair_names)
-        win_report.update({
-            "accepted": verdict.accepted,
-            "rule": verdict.rule,
-            "reason": verdict.reason,
-            "pairs": _pair_rows(matches, result),
-            "iterations": int(result.iterations) if result is not None else 0,
-            "converged": bool(result.converged) if result is not None else False,
-            "message": result.message if result is not None else "",
-            "rms_px_before": _num(result.rms_before_px) if result is not None else None,
-            "rms_px_after": _num(result.rms_after_px) if result is not None else None,
-            "max_rotation_change_deg": rot,
-            "max_translation_change_m": trans,
-            "seconds": {s: round(timings.seconds.get(s, 0.0) - before.get(s, 0.0), 3) for s in timings.seconds},
-            "wall_seconds": round(time.perf_counter() - t_win, 3),
-        })
-        if verdict.accepted and method != "none":
-            history.append({"from_timestamp_us": ts, "window": k, "method": method,
-                            "sensor_to_ego": _matrix_dict(after)})
-            current = after
-        elif verdict.accepted:
-            current = after
-        reports.append(win_report)
-
-    final = calibration_at({"history": history}, int(1 << 62)) if method != "none" else None
+        start = {**input_ext, **(calibration_at({"history": history}, ts) or dict(current))}
+        res = _calibrate_window(rig, setup, k, win, start)
+        if res.verdict.accepted:
+            current = res.after
+            if setup.method != "none":
+                history.append({"from_timestamp_us": ts, "window": k, "method": setup.method,
+                                "sensor_to_ego": _matrix_dict(res.after)})
+        reports.append(res.report)
+    block = _block(setup, reports, history)
+    final = calibration_at({"history": history}, int(1 << 62)) if setup.method != "none" else None
     final = {**input_ext, **(final or current)}
+    return rig.with_extrinsics(final).with_extra(calibration=block), block
+
+
+def _block(setup: Setup, reports: list[dict], history: list[dict]) -> dict:
+    """The calibration block of the output rig."""
     accepted_any = any(w["accepted"] for w in reports)
     first_rejected = next((w for w in reports if not w["accepted"]), None)
-    block = {
+    return {
         "version": CALIB_VERSION,
-        "method": method,
-        "matcher": matcher,
-        "reference": ref,
-        "window": window,
-        "rules": rules.to_dict(),
+        "method": setup.method,
+        "matcher": setup.matcher,
+        "reference": setup.reference,
+        "window": setup.window,
+        "rules": setup.rules.to_dict(),
         "accepted": accepted_any,
         "rule": None if accepted_any or first_rejected is None else first_rejected["rule"],
         "reason": None if accepted_any or first_rejected is None else first_rejected["reason"],
+        "rules_fired": [{"window": w["index"], **f} for w in reports for f in w["rules_fired"]],
         "windows": reports,
         "history": history,
-        "seconds": {s: round(v, 3) for s, v in timings.seconds.items()},
+        "seconds": {s: round(v, 3) for s, v in setup.timings.seconds.items()},
     }
-    out = rig.with_extrinsics(final).with_extra(calibration=block)
-    return out, block
 
 
 def _num(x: float) -> float | None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .options import integer, number
+
 HELP = "refine the extrinsics of a rig folder (GLC bundle adjustment) and write an sgde-rig/1 file"
 
 METHODS = ("glc", "wo-glc", "pairwise", "none")
@@ -19,13 +21,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher", choices=("sift", "loftr"), default="sift", help="feature matcher (default sift)")
     parser.add_argument("--loftr-weights", default=None, metavar="CKPT",
                         help="local LoFTR checkpoint for --matcher loftr (nothing is downloaded)")
-    parser.add_argument("--window", type=int, default=7,
+    parser.add_argument("--window", type=integer(1, 100000), default=7,
                         help="frames per calibration window T (default 7); the frames are split into consecutive "
                              "windows and a rejected window keeps the last accepted calibration")
-    parser.add_argument("--beta", type=int, default=None,
-                        help="minimum correspondences per adjacent pair (default: 200 DDAD, 50 nuScenes, 100 synth)")
-    parser.add_argument("--alpha", type=float, default=0.3, help="largest accepted relative translation change, m")
+    parser.add_argument("--beta", type=integer(0, 10**9), default=None,
+                        help="minimum verified inliers per observation pair, i.e. per two images (default 15 with "
+                             "sift; with loftr the paper's 200 DDAD, 50 nuScenes); a camera pair without one is "
+                             "constrained through the ring")
+    parser.add_argument("--alpha", type=number(0, 1e3, lo_open=True), default=0.3,
+                        help="largest accepted relative translation change, m")
+    parser.add_argument("--max-iterations", type=integer(1, 10**6), default=200,
+                        help="iteration limit of the adjustment; a window that needs more is rejected (default 200)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
+    parser.add_argument("--strict", action="store_true",
+                        help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
 
 
 def parse_frames(text: str | None) -> slice | None:
@@ -85,8 +94,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.alpha > 0:
         raise InputError(None, "--alpha", "must be positive")
     rig = load_rig(args.dir, check_images=True)
-    beta = default_beta(rig) if args.beta is None else args.beta
-    rules = AcceptanceRules(min_correspondences=beta, max_translation_change_m=args.alpha)
+    beta = default_beta(rig, args.matcher) if args.beta is None else args.beta
+    if args.max_iterations < 1:
+        raise InputError(None, "--max-iterations", "must be at least 1")
+    rules = AcceptanceRules(min_correspondences=beta, max_translation_change_m=args.alpha,
+                            max_iterations=args.max_iterations)
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
                                loftr_weights=args.loftr_weights, rules=rules)
     write_rig_json(out_rig, args.out)
@@ -95,8 +107,23 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(summary_rows(block), digits=3))
     n_ok = sum(w["accepted"] for w in block["windows"])
     print(f"{args.method}: {n_ok}/{len(block['windows'])} windows accepted; wrote {args.out}")
-    for w in block["windows"]:
-        if not w["accepted"]:
-            print(f"window {w['index']} (frames {w['frames'][0]}..{w['frames'][-1]}) rejected: {w['reason']}; "
-                  "the last accepted calibration is kept", file=sys.stderr)
-    return 0
+    line = rejection_line(block)
+    if line:
+        print(line, file=sys.stderr)
+    return STRICT_EXIT if args.strict and n_ok == 0 else 0
+
+
+STRICT_EXIT = 3
+
+
+def rejection_line(block: dict) -> str | None:
+    """One line for stderr about rejected windows (None when every window was accepted)."""
+    rejected = [w for w in block["windows"] if not w["accepted"]]
+    if not rejected:
+        return None
+    w = rejected[0]
+    where = f"window {w['index']} (frames {w['frames'][0]}..{w['frames'][-1]}): {w['rule']}: {w['reason']}"
+    if len(rejected) == len(block["windows"]):
+        return f"calibrate: no window accepted, the input extrinsics are kept; {where}"
+    return (f"calibrate: {len(rejected)} of {len(block['windows'])} windows rejected, each keeps the last accepted "
+            f"calibration; first: {where}")

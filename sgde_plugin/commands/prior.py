@@ -4,7 +4,47 @@ from __future__ import annotations
 
 import argparse
 
+from .options import integer, number
+
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
+
+
+# Every PriorConfig field as an option (tests check that none is missing): name, type, help.
+# Defaults are None here: an option given on the command line wins over --config, which wins over --preset.
+SETTING_OPTIONS: list[tuple[str, str, str]] = [
+    ("matcher", "str", "sgbm (default), raft-stereo (official checkpoint + the RAFT-Stereo checkout on PYTHONPATH), "
+     "torch (TorchScript, or state dict with --matcher-arch) or onnx"),
+    ("matcher_path", "str", "learned matcher file: raftstereo-*.pth, TorchScript / state dict, or ONNX"),
+    ("matcher_arch", "str", "pkg.module:factory building the module of a torch state dict"),
+    ("matcher_iters", "int", "learned matchers: forward(..., iters=N) (raft-stereo: 32, as its demo)"),
+    ("matcher_input_scale", "float", "learned matchers: multiply [0, 255] pixels by this (1)"),
+    ("matcher_flow_output", "bool", "learned matchers: the output is a flow, disparity = -x (raft-stereo: yes)"),
+    ("matcher_pad", "int", "learned matchers: pad inputs (centred, edge values) to multiples of this (32)"),
+    ("device", "str", "learned matchers: cpu (default) or cuda"),
+    ("matcher_batch", "int", "learned matchers: same-size images per forward call (2)"),
+    ("scale", "float", "matching resolution relative to the images (0.5)"),
+    ("min_depth", "float", "nearest depth searched, metres (1.5)"),
+    ("max_depth", "float", "farthest depth kept, metres (80; ddad preset 200)"),
+    ("block_size", "int", "SGBM block size, odd (3)"),
+    ("p1", "int", "SGBM smoothness penalty P1 per channel and block pixel (8)"),
+    ("p2", "int", "SGBM smoothness penalty P2 per channel and block pixel (32)"),
+    ("uniqueness", "int", "SGBM uniqueness ratio, percent (15)"),
+    ("speckle_window", "int", "SGBM speckle window, pixels (100)"),
+    ("speckle_range", "int", "SGBM speckle range, disparity steps (2)"),
+    ("lr_max_diff", "float", "left-right consistency, rectified pixels (1)"),
+    ("border_px", "int", "matches this close to an image border are dropped (2)"),
+    ("refine_iterations", "int", "sub-pixel refinement steps, 0 = off (SGBM 1, learned 0)"),
+    ("min_zncc", "float", "photometric check: ZNCC above this (0.5)"),
+    ("max_abs_diff", "float", "photometric check: mean absolute difference below this, grey levels (8)"),
+    ("min_texture", "float", "RMS x-gradient above this, 0 = off (SGBM 0.5, learned 0)"),
+    ("min_region_px", "int", "smallest region of similar disparity kept, pixels (200)"),
+    ("color", "bool", "match RGB instead of grey (SGBM no, learned yes)"),
+    ("margin_px", "int", "rectified canvas margin, pixels (8)"),
+    ("max_azimuth_deg", "float", "rectified canvas half-angle, degrees (60)"),
+    ("max_elevation_deg", "float", "rectified canvas half-angle, degrees (50)"),
+    ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
+]
+OPTION_TYPES = {"int": int, "float": number(), "str": str}  # floats: finite (NaN and inf refused)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -12,15 +52,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dir", help="rig folder or data-set location (PATH[::SELECTOR...])")
     parser.add_argument("--out", required=True, help="prior cache: a folder, or an fsspec URL (s3://..., memory://...)")
     parser.add_argument("--rig", help="sgde-rig/1 file whose cameras (e.g. refined extrinsics) replace DIR's")
-    parser.add_argument("--matcher", default="sgbm", help="sgbm (default), torch or onnx (with --matcher-path)")
-    parser.add_argument("--matcher-path", help="learned matcher file (torch module / state dict, or ONNX)")
-    parser.add_argument("--scale", type=float, default=0.5, help="matching resolution relative to the images (0.5)")
-    parser.add_argument("--min-depth", type=float, default=None, help="nearest depth searched, metres (1.5)")
-    parser.add_argument("--max-depth", type=float, default=None, help="farthest depth kept, metres (80)")
-    parser.add_argument("--workers", type=int, default=None, help="parallel worker processes (default: all CPUs)")
+    parser.add_argument("--preset", help="per-data-set settings: ddad, nuscenes, fisheye or synthetic")
+    parser.add_argument("--config", help="YAML file of prior settings (PriorConfig field names; may name a preset)")
+    settings = parser.add_argument_group("prior settings (each overrides --config and --preset)")
+    for name, kind, text in SETTING_OPTIONS:
+        flag = "--" + name.replace("_", "-")
+        if kind == "bool":
+            settings.add_argument(flag, dest=name, action=argparse.BooleanOptionalAction, default=None, help=text)
+        else:
+            settings.add_argument(flag, dest=name, type=OPTION_TYPES[kind], default=None, help=text)
+    settings.add_argument("--matcher-option", dest="matcher_options", action="append", metavar="KEY=VALUE",
+                          help="learned matchers: factory keyword / RAFT-Stereo argument (YAML value), repeatable; "
+                          "e.g. --matcher-option n_downsample=3")
+    parser.add_argument("--workers", type=integer(0, 4096), default=None,
+                        help="parallel worker processes (default: all CPUs; learned matchers: as memory allows)")
     parser.add_argument("--engine", choices=("local", "ray"), default="local", help="local processes or Ray actors")
     parser.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray instance)")
     parser.add_argument("--scene", help="scene (zarr group) name in the cache (default: from the rig or DIR)")
+    parser.add_argument("--strict", action="store_true", help="exit 3 as soon as a frame's prior comes out empty")
+    parser.add_argument("--repair", action="store_true", help="read every chunk of the cached frames and rebuild "
+                        "the damaged ones (a resume always rebuilds frames whose shards are missing)")
+    parser.add_argument("--wait", type=number(0, 86400), default=0.0, metavar="SECONDS",
+                        help="wait this long for another build writing the same cache (default: refuse at once)")
+
+
+def settings_from_args(args: argparse.Namespace) -> dict:
+    """The prior settings given on the command line (None = not given)."""
+    import yaml
+
+    from ..errors import InputError
+
+    values = {name: getattr(args, name, None) for name, _, _ in SETTING_OPTIONS}
+    if getattr(args, "matcher_options", None):
+        options = {}
+        for item in args.matcher_options:
+            key, sep, text = item.partition("=")
+            if not sep or not key:
+                raise InputError(None, "--matcher-option", f"expected KEY=VALUE, got {item!r}")
+            try:
+                options[key] = yaml.safe_load(text)
+            except yaml.YAMLError:
+                raise InputError(None, "--matcher-option", f"{key}: not a YAML value: {text!r}") from None
+        values["matcher_options"] = options
+    return values
 
 
 def _scene_from_location(location: str) -> str | None:
@@ -51,26 +125,31 @@ def load_rig_with_override(location: str, rig_json: str | None):
 
 def run(args: argparse.Namespace) -> int:
     """Build (or resume) the cache and print one summary line."""
-    import dataclasses
+    import sys
 
-    from ..cache.build import build_cache, default_scene_name, default_workers, sanitize_scene_name
+    from ..cache.build import StrictWarningError, build_cache, default_scene_name, default_workers, sanitize_scene_name
     from ..errors import InputError
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.presets import load_prior_config
 
+    config = load_prior_config(args.config, args.preset, settings_from_args(args))
     rig = load_rig_with_override(args.dir, args.rig)
-    settings = {"matcher": args.matcher, "matcher_path": args.matcher_path, "scale": args.scale,
-                "min_depth": args.min_depth, "max_depth": args.max_depth}
-    names = {f.name for f in dataclasses.fields(PriorConfig)}
-    config = PriorConfig(**{k: v for k, v in settings.items() if v is not None and k in names})
-    workers = args.workers if args.workers is not None else (0 if args.ray_address else default_workers())
+    workers = args.workers if args.workers is not None else (0 if args.ray_address else default_workers(config))
     if workers < 0 or (workers == 0 and not args.ray_address):
         raise InputError(None, "--workers", "must be at least 1")
     scene = args.scene
     if not scene:
         named = rig.extra.get("scene") or _scene_from_location(args.dir)
         scene = sanitize_scene_name(str(named)) if named else default_scene_name(rig)
-    report = build_cache(
-        rig, args.out, config, workers=workers, engine=args.engine, scene=str(scene), ray_address=args.ray_address
-    )
+    def warn(frame_id: str, text: str) -> None:
+        print(f"sgde prior: warning: frame {frame_id}: {text}", file=sys.stderr)
+
+    try:
+        report = build_cache(
+            rig, args.out, config, workers=workers, engine=args.engine, scene=str(scene), ray_address=args.ray_address,
+            on_warning=warn, strict=args.strict, repair=args.repair, wait_s=args.wait,
+        )
+    except StrictWarningError:
+        print("sgde prior: stopped (--strict): a frame's prior came out empty", file=sys.stderr)
+        return 3
     print(report.line())
     return 0

@@ -35,11 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera, CameraModel, intrinsics_from_dict
+from ..cameras import Camera, intrinsics_from_dict
 from ..errors import InputError
 from ..geometry import CAMERA_TO_BODY, make_transform, rodrigues
 from ..io import image_size
 from ..rig import Frame, Rig, ring_pairs
+from ..splat import splat_depth
 
 CONFIG = "config.yaml"
 DEFAULT_IMG_FMT = "cam%d/%04d.png"
@@ -248,16 +249,7 @@ def panorama_depth_to_camera(inv_depth: np.ndarray, camera: Camera, phi_deg: flo
     ok = np.isfinite(inv) & (inv > SKY_INV_DEPTH)
     pts_ego = rays[ok] / inv[ok][:, None]
     R, t = camera.sensor_to_ego[:3, :3], camera.sensor_to_ego[:3, 3]
-    pts = (pts_ego - t) @ R
-    model: CameraModel = camera.intrinsics
-    uv, valid = model.project(pts)
-    depth = model.depth(pts)
-    iu, iv = np.rint(uv[..., 0]).astype(np.int64), np.rint(uv[..., 1]).astype(np.int64)
-    valid &= (iu >= 0) & (iu < camera.width) & (iv >= 0) & (iv < camera.height) & (depth > 0)
-    out = np.full(camera.width * camera.height, np.inf)
-    np.minimum.at(out, iv[valid] * camera.width + iu[valid], depth[valid])
-    out[~np.isfinite(out)] = 0.0
-    return out.reshape(camera.height, camera.width).astype(np.float32)
+    return splat_depth((pts_ego - t) @ R, camera).astype(np.float32)
 
 
 def load_panorama_depth(path: str | Path, camera: Camera, phi_deg: float | None = None) -> np.ndarray:

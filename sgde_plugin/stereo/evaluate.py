@@ -19,40 +19,41 @@ from ..cameras import Camera
 from ..geometry import invert_transform
 from ..metrics import METRIC_KEYS, depth_metrics
 from ..rig import Rig
+from ..splat import lift_depth_torch, project_to_pixels, transform_points_torch
 from .rectify import torch_threads
 
 GROUP_COLUMNS = ("coverage", *METRIC_KEYS, "n_prior", "n_overlap")
 
 
 def true_overlap(
-    cam_a: Camera, gt_a: np.ndarray, cam_b: Camera, gt_b: np.ndarray, mask_b: np.ndarray | None = None,
-    rel_tol: float = 0.03, abs_tol: float = 0.1,
+    cam_a: Camera, gt_a: np.ndarray, cam_b: Camera, gt_b: np.ndarray | None, mask_b: np.ndarray | None = None,
+    rel_tol: float = 0.03, abs_tol: float = 0.1, a_to_b: np.ndarray | None = None,
 ) -> np.ndarray:
     """Bool (H, W) of camera A: ground-truth pixels whose 3-D point B sees unoccluded.
 
     B "sees" the point when it projects inside B's image (and mask) and B's ground-truth depth at
     the nearest pixel agrees with the point's depth in B within `rel_tol` (relative) + `abs_tol` m.
+    With `gt_b` None (sparse truth such as LiDAR, which cannot confirm visibility) projecting inside
+    B is enough. `a_to_b` (4x4, camera A's frame -> camera B's) defaults to the extrinsics'
+    inv(sensor_to_ego_B) @ sensor_to_ego_A; pass the per-capture one when the cameras fired apart.
     Both cameras must carry their true extrinsics.
     """
     h, w = gt_a.shape
-    ys, xs = np.nonzero(gt_a > 0)
     out = np.zeros((h, w), bool)
-    if xs.size == 0:
-        return out
+    if a_to_b is None:
+        a_to_b = invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego
     with torch_threads(1):
-        uv = torch.as_tensor(np.stack([xs, ys], axis=-1), dtype=torch.float64)
-        pts, ok = cam_a.intrinsics.points_from_depth_torch(uv, torch.as_tensor(gt_a[ys, xs], dtype=torch.float64))
-        T = torch.as_tensor(invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego)
-        pts_b = pts @ T[:3, :3].T + T[:3, 3]
-        uv_b, vis = cam_b.intrinsics.project_torch(pts_b)
-        expected = cam_b.intrinsics.depth_torch(pts_b).numpy()
-    col = np.clip(np.rint(uv_b[:, 0].numpy()), 0, cam_b.width - 1).astype(np.intp)
-    row = np.clip(np.rint(uv_b[:, 1].numpy()), 0, cam_b.height - 1).astype(np.intp)
-    seen = (ok & vis).numpy()
-    found = gt_b[row, col]
-    seen &= (found > 0) & (np.abs(found - expected) <= rel_tol * expected + abs_tol)
+        gt = torch.as_tensor(np.asarray(gt_a, dtype=np.float64))
+        pts, lifted = lift_depth_torch(gt, cam_a)
+        hits = project_to_pixels(transform_points_torch(torch.as_tensor(a_to_b), pts), cam_b)
+    ys, xs = np.nonzero(lifted.numpy())
+    seen, index = hits.valid.numpy(), hits.index.numpy()
+    if gt_b is not None:
+        found = np.asarray(gt_b).reshape(-1)[index]
+        expected = hits.depth.numpy()
+        seen &= (found > 0) & (np.abs(found - expected) <= rel_tol * expected + abs_tol)
     if mask_b is not None:
-        seen &= mask_b[row, col]
+        seen &= np.asarray(mask_b).reshape(-1)[index]
     out[ys[seen], xs[seen]] = True
     return out
 
@@ -87,11 +88,16 @@ class _Group:
 
 
 class PriorEvaluator:
-    """Accumulates frames of priors and ground truth of one rig (true extrinsics); `.result()` reports."""
+    """Accumulates frames of priors and ground truth of one rig (true extrinsics); `.result()` reports.
 
-    def __init__(self, rig_true: Rig, max_depth: float = 80.0):
+    `sparse_truth` (LiDAR): a ground-truth point is in the true overlap when it projects inside the
+    neighbour (and its mask); the neighbour's sparse truth cannot confirm that it is not occluded there.
+    """
+
+    def __init__(self, rig_true: Rig, max_depth: float = 80.0, sparse_truth: bool = False):
         self.rig = rig_true
         self.max_depth = max_depth
+        self.sparse_truth = sparse_truth
         self.frames = 0
         self.cameras = {c: _Group() for c in rig_true.camera_names}
         self.pairs = {f"{a}|{b}": _Group() for a, b in rig_true.pairs}
@@ -99,9 +105,13 @@ class PriorEvaluator:
 
     def add(
         self, priors: Mapping[str, np.ndarray], gts: Mapping[str, np.ndarray | None],
-        masks: Mapping[str, np.ndarray | None] | None = None,
+        masks: Mapping[str, np.ndarray | None] | None = None, frame: str | None = None,
     ) -> None:
-        """One frame: prior depth per camera (0 = none) and ground truth per camera (None = unknown)."""
+        """One frame: prior depth per camera (0 = none) and ground truth per camera (None = unknown).
+
+        With `frame` (an id of the rig), cameras are related by their poses at their own captures
+        (`Rig.capture`), as they must be when they fired at different times; otherwise by the extrinsics.
+        """
         masks = masks or {}
         in_range = {}
         for name, gt in gts.items():
@@ -115,8 +125,11 @@ class PriorEvaluator:
         for a, b in self.rig.pairs:
             if a in in_range and b in in_range:
                 ca, cb = self.rig.camera(a), self.rig.camera(b)
-                overlap[a, b] = true_overlap(ca, in_range[a], cb, gts[b], masks.get(b))
-                overlap[b, a] = true_overlap(cb, in_range[b], ca, gts[a], masks.get(a))
+                a_to_b = None if frame is None else self._relative(frame, a, b)
+                b_to_a = None if a_to_b is None else invert_transform(a_to_b)
+                confirm_a, confirm_b = (None, None) if self.sparse_truth else (gts[a], gts[b])
+                overlap[a, b] = true_overlap(ca, in_range[a], cb, confirm_b, masks.get(b), a_to_b=a_to_b)
+                overlap[b, a] = true_overlap(cb, in_range[b], ca, confirm_a, masks.get(a), a_to_b=b_to_a)
         for name, g in in_range.items():
             prior = priors.get(name)
             if prior is None:
@@ -137,6 +150,10 @@ class PriorEvaluator:
                 prior = np.zeros_like(in_range[x]) if prior is None else prior
                 group.add(prior, in_range[x], overlap[x, y], overlap[x, y])
         self.frames += 1
+
+    def _relative(self, frame: str, a: str, b: str) -> np.ndarray:
+        """4x4 camera a -> camera b, each at its own capture of `frame`."""
+        return invert_transform(self.rig.capture(frame, b).camera_to_world) @ self.rig.capture(frame, a).camera_to_world
 
     def result(self) -> dict[str, Any]:
         """{"overall": row, "cameras": {name: row}, "pairs": {"A|B": row}, "frames": n}."""

@@ -1,17 +1,31 @@
 """Stereo matchers behind one interface: rectified left, right -> left-referenced disparity, confidence.
 
 `SGBMMatcher` (OpenCV semi-global matching, 3-way mode, internal left-right check, uniqueness and
-speckle filtering) is the default. `TorchMatcher` and `OnnxMatcher` run a learned matcher loaded
-from a local file (for example a RAFT-Stereo export): a TorchScript file, a state dict plus the
-module that holds it (loaded with `torch.load(..., weights_only=True)`), or an ONNX file run by
-onnxruntime. Learned matchers take two (1, 3, H, W) float32 RGB tensors and return a disparity map
-(or a flow whose x component is minus the disparity, RAFT-Stereo's convention).
+speckle filtering) is the default. Learned matchers load from a local file (nothing is downloaded):
+
+- `raft-stereo`: an official RAFT-Stereo checkpoint (`raftstereo-*.pth`, keys with or without the
+  `module.` prefix of DataParallel) built with the official code, imported as `core.raft_stereo`
+  from the user's checkout on PYTHONPATH, with its demo's arguments (overridable) and called as
+  `forward(image1, image2, iters=32, test_mode=True)`; its output is a flow, disparity = -x.
+- `torch`: a TorchScript file, or a state dict plus the module that holds it (`arch`,
+  "pkg.module:factory", called with `options` as keywords).
+- `onnx`: an ONNX file run by onnxruntime; height and width must be dynamic.
+
+Learned matchers get two (B, 3, H, W) float32 RGB tensors in [0, 255] times `input_scale`, padded
+(edge values, centred, as RAFT-Stereo's InputPadder does) to multiples of `pad_multiple`, and return a
+disparity (or a flow whose x component is minus the disparity). The search range is passed as
+`max_disparity=` to a torch module whose forward takes it, and as a third input to an ONNX model that
+has one; disparities outside [0, max_disparity) count as invalid.
 """
 
 from __future__ import annotations
 
+import argparse
+import hashlib
 import importlib
-from collections.abc import Callable
+import importlib.util
+import inspect
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -20,6 +34,21 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+
+# the official RAFT-Stereo demo's architecture arguments (demo.py); `matcher_options` override them
+RAFT_STEREO_ARGS: dict[str, Any] = {
+    "hidden_dims": [128, 128, 128],
+    "corr_implementation": "reg",
+    "shared_backbone": False,
+    "corr_levels": 4,
+    "corr_radius": 4,
+    "n_downsample": 2,
+    "context_norm": "batch",
+    "slow_fast_gru": False,
+    "n_gru_layers": 3,
+    "mixed_precision": False,
+}
+RAFT_STEREO_MODULE = "core.raft_stereo"
 
 
 class Matcher(Protocol):
@@ -75,106 +104,248 @@ class SGBMMatcher:
 
 
 def _as_rgb_float(image: np.ndarray) -> np.ndarray:
-    """uint8 HxW or HxWx3 -> float32 (1, 3, H, W) in [0, 255]."""
+    """uint8 HxW or HxWx3 -> float32 (3, H, W) in [0, 255]."""
     img = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
-    return np.ascontiguousarray(img.transpose(2, 0, 1)[None].astype(np.float32))
+    return np.ascontiguousarray(img.transpose(2, 0, 1).astype(np.float32))
 
 
-def _pad_to(batch: np.ndarray, multiple: int) -> np.ndarray:
-    """Pad (1, C, H, W) at the bottom and right (edge values) to multiples of `multiple`."""
-    if multiple <= 1:
+def centred_padding(height: int, width: int, multiple: int) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right) padding to multiples of `multiple`, split as RAFT-Stereo's InputPadder does."""
+    ph, pw = (-height) % multiple, (-width) % multiple
+    return ph // 2, ph - ph // 2, pw // 2, pw - pw // 2
+
+
+def _pad(batch: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
+    """Pad (B, C, H, W) with edge values."""
+    top, bottom, left, right = pads
+    if not any(pads):
         return batch
-    h, w = batch.shape[2:]
-    ph, pw = (-h) % multiple, (-w) % multiple
-    return np.pad(batch, ((0, 0), (0, 0), (0, ph), (0, pw)), mode="edge") if ph or pw else batch
+    return np.pad(batch, ((0, 0), (0, 0), (top, bottom), (left, right)), mode="edge")
 
 
-def _disparity_from_output(out: Any, height: int, width: int, flow_output: bool) -> np.ndarray:
-    """Pick the disparity out of a network's output (last of a list; channel 0 of a flow)."""
+def network_input(images: Sequence[np.ndarray], input_scale: float = 1.0, multiple: int = 32
+                  ) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """Same-size uint8 images -> the padded (B, 3, H', W') float32 batch a learned matcher gets, and the padding."""
+    h, w = images[0].shape[:2]
+    pads = centred_padding(h, w, multiple)
+    batch = _pad(np.stack([_as_rgb_float(img) for img in images]) * np.float32(input_scale), pads)
+    return np.ascontiguousarray(batch, dtype=np.float32), pads
+
+
+def _output_array(out: Any) -> np.ndarray:
+    """A network's output as float32 (B, H, W): the last of a list/tuple, channel 0 of a flow."""
     if isinstance(out, (list, tuple)):
         out = out[-1]
-    arr = out.detach().cpu().numpy() if hasattr(out, "detach") else np.asarray(out)
+    arr = out.detach().float().cpu().numpy() if hasattr(out, "detach") else np.asarray(out, dtype=np.float32)
     arr = arr.astype(np.float32)
-    while arr.ndim > 2:
-        arr = arr[0]
-    arr = arr[:height, :width]
-    return -arr if flow_output else arr
+    if arr.ndim == 4:
+        arr = arr[:, 0]
+    elif arr.ndim == 2:
+        arr = arr[None]
+    if arr.ndim != 3:
+        raise InputError(None, "matcher", f"output of shape {tuple(arr.shape)}: expected (B, H, W) or (B, C, H, W)")
+    return arr
 
 
-def _learned_result(disp: np.ndarray, max_disparity: int) -> tuple[np.ndarray, np.ndarray]:
-    """Learned matchers have no own confidence: 1 where the disparity is finite and in range."""
-    valid = np.isfinite(disp) & (disp >= 0) & (disp < max_disparity)
-    return np.where(valid, disp, 0.0).astype(np.float32), valid.astype(np.float32)
+class LearnedMatcher:
+    """What all learned matchers share: input layout, padding, batching, output convention, statistics.
+
+    `counts` accumulates, over the matched pixels, how many disparities were finite, valid, and clearly
+    negative (a flow read with the wrong sign gives mostly negative disparities).
+    """
+
+    def __init__(self, input_scale: float = 1.0, flow_output: bool = False, pad_multiple: int = 32,
+                 batch_size: int = 2):
+        self.input_scale = float(input_scale)  # multiply [0, 255] pixels by this (1/255 for [0, 1] inputs)
+        self.flow_output = bool(flow_output)  # output is a flow: disparity = -x
+        self.pad_multiple = max(1, int(pad_multiple))
+        self.batch_size = max(1, int(batch_size))
+        self.counts = {"finite": 0, "valid": 0, "negative": 0}
+
+    def run(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> np.ndarray:
+        """The network on padded (B, 3, H, W) inputs -> raw output (B, H, W)."""
+        raise NotImplementedError
+
+    def match(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> tuple[np.ndarray, np.ndarray]:
+        """Match one rectified pair (see `match_many`)."""
+        return self.match_many([(left, right)], [max_disparity])[0]
+
+    def match_many(
+        self, pairs: Sequence[tuple[np.ndarray, np.ndarray]], max_disparities: Sequence[int]
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Match several rectified pairs; inputs of the same size and search range share forward calls
+        of up to `batch_size` images. Disparity and a 0/1 confidence per pair, in the order given."""
+        out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(pairs)
+        groups: dict[tuple, list[int]] = {}
+        for i, ((left, _), d) in enumerate(zip(pairs, max_disparities)):
+            groups.setdefault((left.shape[:2], int(d)), []).append(i)
+        for ((h, w), d), members in groups.items():
+            for k in range(0, len(members), self.batch_size):
+                chunk = members[k : k + self.batch_size]
+                a, pads = network_input([pairs[i][0] for i in chunk], self.input_scale, self.pad_multiple)
+                b, _ = network_input([pairs[i][1] for i in chunk], self.input_scale, self.pad_multiple)
+                raw = self.run(a, b, d)
+                if raw.shape[0] != len(chunk) or raw.shape[1:] != a.shape[2:]:
+                    raise InputError(None, "matcher", f"output of shape {tuple(raw.shape)} for inputs of shape "
+                                     f"{tuple(a.shape)}: expected one full-size disparity or flow per input")
+                raw = raw[:, pads[0] : pads[0] + h, pads[2] : pads[2] + w]
+                for j, i in enumerate(chunk):
+                    out[i] = self._result(-raw[j] if self.flow_output else raw[j], d)
+        return [o for o in out if o is not None]
+
+    def _result(self, disp: np.ndarray, max_disparity: int) -> tuple[np.ndarray, np.ndarray]:
+        """Learned matchers have no own confidence: 1 where the disparity is finite and in range."""
+        finite = np.isfinite(disp)
+        valid = finite & (disp >= 0) & (disp < max_disparity)
+        self.counts["finite"] += int(finite.sum())
+        self.counts["valid"] += int(valid.sum())
+        self.counts["negative"] += int((finite & (disp < -0.5)).sum())
+        return np.where(valid, disp, 0.0).astype(np.float32), valid.astype(np.float32)
 
 
-@dataclass
-class TorchMatcher:
-    """A learned matcher as a torch module: forward(left, right) on (1, 3, H, W) float32 tensors."""
+def _accepts(fn: Callable, name: str) -> bool:
+    """True if `fn` takes a keyword argument `name` (or **kwargs)."""
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
-    module: Any
-    input_scale: float = 1.0  # multiply [0, 255] pixels by this (1/255 for [0, 1] inputs)
-    flow_output: bool = False  # output is a flow: disparity = -x
-    pad_multiple: int = 32
+
+def torch_device(device: str) -> Any:
+    """A torch device from "cpu" / "cuda"; one line when CUDA is asked for but absent."""
+    import torch
+
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError(None, "device", "cuda asked for, but torch sees no CUDA device (use --device cpu)")
+    return torch.device(device)
+
+
+class TorchMatcher(LearnedMatcher):
+    """A learned matcher as a torch module: forward(left, right, **forward_kwargs) on (B, 3, H, W) tensors."""
+
+    def __init__(self, module: Any, *, forward_kwargs: Mapping[str, Any] | None = None, device: str = "cpu",
+                 **kwargs: Any):
+        super().__init__(**kwargs)
+        self.device = torch_device(device)
+        self.module = module.to(self.device).eval()
+        self.forward_kwargs = dict(forward_kwargs or {})
+        self._takes_range = _accepts(getattr(module, "forward", module), "max_disparity")
 
     @classmethod
     def from_torchscript(cls, path: str | Path, **kwargs: Any) -> TorchMatcher:
         """Load a TorchScript file (`torch.jit.save`)."""
         import torch
 
-        return cls(torch.jit.load(str(path), map_location="cpu").eval(), **kwargs)
+        return cls(torch.jit.load(str(path), map_location="cpu"), **kwargs)
 
     @classmethod
-    def from_state_dict(cls, factory: Callable[[], Any], path: str | Path, **kwargs: Any) -> TorchMatcher:
-        """Build the module with `factory()` and load a state dict with `torch.load(weights_only=True)`."""
+    def from_state_dict(
+        cls, factory: Callable[..., Any], path: str | Path, options: Mapping[str, Any] | None = None, **kwargs: Any
+    ) -> TorchMatcher:
+        """Build the module with `factory(**options)` and load a checkpoint (`module.` prefixes stripped)."""
+        try:
+            module = factory(**dict(options or {}))
+        except TypeError as exc:
+            raise InputError(path, "matcher_arch", f"cannot build the module ({exc}); pass its arguments "
+                             "as matcher_options") from None
+        load_checkpoint(module, path)
+        return cls(module, **kwargs)
+
+    def run(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> np.ndarray:
+        """The module on one batch (no gradients; TorchScript without per-shape re-optimisation)."""
         import torch
 
-        state = torch.load(str(path), map_location="cpu", weights_only=True)
-        if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
-            state = state["state_dict"]
-        module = factory()
-        module.load_state_dict(state)
-        return cls(module.eval(), **kwargs)
-
-    def match(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> tuple[np.ndarray, np.ndarray]:
-        """Run the module once on the padded pair and crop its disparity back."""
-        import torch
-
-        h, w = left.shape[:2]
-        a = _pad_to(_as_rgb_float(left) * self.input_scale, self.pad_multiple)
-        b = _pad_to(_as_rgb_float(right) * self.input_scale, self.pad_multiple)
+        kwargs = dict(self.forward_kwargs)
+        if self._takes_range:
+            kwargs["max_disparity"] = int(max_disparity)
+        a = torch.from_numpy(left).to(self.device)
+        b = torch.from_numpy(right).to(self.device)
         # TorchScript re-optimises for every new input shape, and canvases differ per pair: run it plainly
         with torch.inference_mode(), torch.jit.optimized_execution(False):
-            out = self.module(torch.from_numpy(a), torch.from_numpy(b))
-        return _learned_result(_disparity_from_output(out, h, w, self.flow_output), max_disparity)
+            return _output_array(self.module(a, b, **kwargs))
 
 
-@dataclass
-class OnnxMatcher:
-    """A learned matcher exported to ONNX with two image inputs, run by onnxruntime on the CPU."""
+def load_checkpoint(module: Any, path: str | Path) -> None:
+    """Load a state dict (plain, under 'state_dict' / 'model', or DataParallel's `module.` keys) into a module."""
+    import torch
 
-    path: str
-    input_scale: float = 1.0
-    flow_output: bool = False
-    pad_multiple: int = 32
+    try:
+        state = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is bad input
+        raise InputError(path, None, f"not a readable torch checkpoint ({type(exc).__name__})") from None
+    for key in ("state_dict", "model"):
+        if isinstance(state, dict) and isinstance(state.get(key), dict):
+            state = state[key]
+    if not isinstance(state, dict):
+        raise InputError(path, None, "not a state dict")
+    if state and all(k.startswith("module.") for k in state):
+        state = {k[len("module.") :]: v for k, v in state.items()}
+    missing, unexpected = _key_mismatch(module, state)
+    if missing or unexpected:
+        raise InputError(path, "state dict", f"does not fit the architecture ({len(missing)} missing keys, e.g. "
+                         f"{missing[:2]}; {len(unexpected)} unexpected, e.g. {unexpected[:2]}); check matcher_options")
+    module.load_state_dict(state)
 
-    def __post_init__(self) -> None:
+
+def _key_mismatch(module: Any, state: Mapping[str, Any]) -> tuple[list[str], list[str]]:
+    own = set(module.state_dict())
+    return sorted(own - set(state)), sorted(set(state) - own)
+
+
+def _onnx_providers(device: str) -> list[str]:
+    import onnxruntime as ort
+
+    if device == "cuda":
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            raise InputError(None, "device", "cuda asked for, but onnxruntime has no CUDAExecutionProvider "
+                             "(install onnxruntime-gpu, or use --device cpu)")
+        return ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    return ["CPUExecutionProvider"]
+
+
+class OnnxMatcher(LearnedMatcher):
+    """A learned matcher exported to ONNX: two image inputs (B, 3, H, W) with dynamic H and W, and an
+    optional third scalar input taking the search range."""
+
+    def __init__(self, path: str | Path, *, device: str = "cpu", **kwargs: Any):
         import onnxruntime as ort
 
-        self._session = ort.InferenceSession(str(self.path), providers=["CPUExecutionProvider"])
-        self._inputs = [i.name for i in self._session.get_inputs()]
-        if len(self._inputs) != 2:
-            raise InputError(self.path, "inputs", f"a matcher takes 2 image inputs, this model has {len(self._inputs)}")
+        super().__init__(**kwargs)
+        self.path, self.device = str(path), device
+        providers = _onnx_providers(device)
+        try:
+            self._session = ort.InferenceSession(self.path, providers=providers)
+        except Exception as exc:  # noqa: BLE001 - onnxruntime's load errors are bad input here
+            first = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+            raise InputError(self.path, None, f"onnxruntime cannot load it ({first})") from None
+        inputs = self._session.get_inputs()
+        images = [i for i in inputs if len(i.shape) == 4]
+        others = [i for i in inputs if len(i.shape) != 4]
+        if len(images) != 2 or len(others) > 1 or any(len(i.shape) > 1 for i in others):
+            shapes = ", ".join(f"{i.name} {list(i.shape)}" for i in inputs)
+            raise InputError(self.path, "inputs", f"a matcher takes 2 image inputs (B, 3, H, W) and optionally a "
+                             f"scalar search range; this model has {shapes}")
+        for inp in images:
+            shape = list(inp.shape)
+            if isinstance(shape[2], int) or isinstance(shape[3], int):
+                raise InputError(self.path, f"inputs[{inp.name}]", f"fixed size {shape[2]}x{shape[3]}: canvases "
+                                 "differ per pair; re-export with dynamic height and width (torch.onnx.export(..., "
+                                 "dynamic_axes={name: {2: 'height', 3: 'width'}}))")
+            if shape[0] == 1:
+                self.batch_size = 1
+        self._names = [i.name for i in images]
+        self._range = (others[0].name, np.int64 if "int64" in others[0].type else np.float32) if others else None
 
-    def match(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> tuple[np.ndarray, np.ndarray]:
-        """Run the session once on the padded pair and crop its disparity back."""
-        h, w = left.shape[:2]
-        a = _pad_to(_as_rgb_float(left) * self.input_scale, self.pad_multiple)
-        b = _pad_to(_as_rgb_float(right) * self.input_scale, self.pad_multiple)
-        out = self._session.run(None, {self._inputs[0]: a, self._inputs[1]: b})
-        return _learned_result(_disparity_from_output(out, h, w, self.flow_output), max_disparity)
+    def run(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> np.ndarray:
+        """The session on one batch."""
+        feed = {self._names[0]: left, self._names[1]: right}
+        if self._range is not None:
+            feed[self._range[0]] = np.array(max_disparity, dtype=self._range[1])
+        return _output_array(self._session.run(None, feed))
 
 
-def _import_factory(spec: str) -> Callable[[], Any]:
+def _import_factory(spec: str) -> Callable[..., Any]:
     """`package.module:callable` -> the callable."""
     module_name, _, attr = spec.partition(":")
     if not module_name or not attr:
@@ -185,22 +356,137 @@ def _import_factory(spec: str) -> Callable[[], Any]:
         raise InputError(None, "matcher_arch", f"cannot import {spec!r} ({exc})") from None
 
 
+def raft_stereo_class() -> Any:
+    """The official RAFTStereo class from the user's checkout (`core.raft_stereo` on PYTHONPATH)."""
+    try:
+        return importlib.import_module(RAFT_STEREO_MODULE).RAFTStereo
+    except (ImportError, AttributeError) as exc:
+        raise InputError(None, "matcher raft-stereo", f"cannot import {RAFT_STEREO_MODULE}.RAFTStereo ({exc}); "
+                         "put the root of a RAFT-Stereo checkout (github.com/princeton-vl/RAFT-Stereo) on PYTHONPATH"
+                         ) from None
+
+
+def raft_stereo_module(options: Mapping[str, Any] | None = None) -> Any:
+    """An official RAFTStereo built with the demo's arguments, updated by `options`."""
+    args = argparse.Namespace(**{**RAFT_STEREO_ARGS, **dict(options or {})})
+    return raft_stereo_class()(args)
+
+
 def load_learned_matcher(
     path: str | Path, arch: str | None = None, input_scale: float = 1.0, flow_output: bool = False,
-    pad_multiple: int = 32,
+    pad_multiple: int = 32, *, kind: str | None = None, options: Mapping[str, Any] | None = None,
+    iters: int | None = None, device: str = "cpu", batch_size: int = 2,
 ) -> TorchMatcher | OnnxMatcher:
-    """A learned matcher from a local file: .onnx -> onnxruntime; else TorchScript, or a state dict + `arch`."""
+    """A learned matcher from a local file: `kind` "raft-stereo" (official checkpoint), "onnx" (or a .onnx
+    file), else TorchScript, or a state dict + `arch`."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, None, "matcher file not found")
-    kw = {"input_scale": input_scale, "flow_output": flow_output, "pad_multiple": pad_multiple}
-    if path.suffix.lower() == ".onnx":
-        return OnnxMatcher(str(path), **kw)
+    kw: dict[str, Any] = {"input_scale": input_scale, "flow_output": flow_output, "pad_multiple": pad_multiple,
+                          "batch_size": batch_size, "device": device}
+    if kind == "onnx" or (kind != "raft-stereo" and path.suffix.lower() == ".onnx"):
+        return OnnxMatcher(path, **kw)
+    forward: dict[str, Any] = {} if iters is None else {"iters": int(iters)}
+    if kind == "raft-stereo":
+        module = raft_stereo_module(options)
+        load_checkpoint(module, path)
+        return TorchMatcher(module, forward_kwargs={**forward, "test_mode": True}, **kw)
     if arch is not None:
-        return TorchMatcher.from_state_dict(_import_factory(arch), path, **kw)
+        return TorchMatcher.from_state_dict(_import_factory(arch), path, options, forward_kwargs=forward, **kw)
     try:
-        return TorchMatcher.from_torchscript(path, **kw)
+        return TorchMatcher.from_torchscript(path, forward_kwargs=forward, **kw)
     except RuntimeError:
         raise InputError(
             path, None, "not a TorchScript file; a state dict needs its module (matcher_arch='pkg.module:factory')"
         ) from None
+
+
+# --- fingerprints of learned matchers -------------------------------------------------------------
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def onnx_files(path: str | Path) -> list[Path]:
+    """The ONNX file and every external-data file its tensors point to."""
+    import onnx
+    from onnx.external_data_helper import _get_all_tensors, uses_external_data
+
+    path = Path(path)
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except Exception as exc:  # noqa: BLE001 - any unreadable model is bad input
+        raise InputError(path, None, f"not a readable ONNX file ({type(exc).__name__})") from None
+    files = {path}
+    for tensor in _get_all_tensors(model):
+        if uses_external_data(tensor):
+            location = next((e.value for e in tensor.external_data if e.key == "location"), None)
+            if location:
+                files.add(path.parent / location)
+    return sorted(files)
+
+
+def _source_files(module_name: str) -> list[Path]:
+    """The .py files of the package that holds `module_name` (the module's own file if it has none)."""
+    top = module_name.split(".")[0]
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None:
+        return []
+    if spec.submodule_search_locations:
+        files = sorted(p for loc in spec.submodule_search_locations for p in Path(loc).rglob("*.py"))
+        if len(files) <= 2000:
+            return files
+    try:
+        own = importlib.util.find_spec(module_name)
+    except (ImportError, ValueError):
+        own = None
+    return [Path(own.origin)] if own is not None and own.origin and Path(own.origin).is_file() else []
+
+
+def model_digests(kind: str, path: str | Path | None, arch: str | None) -> dict[str, Any]:
+    """What a learned matcher's output depends on beyond the settings: SHA-256 of every model file
+    (ONNX external data included) and of the architecture's source code (raft-stereo: the checkout's
+    `core` package; `arch`: the package holding the factory)."""
+    path = Path(path or "")
+    if not path.is_file():
+        raise InputError(path, None, "matcher file not found")
+    files = onnx_files(path) if kind == "onnx" or (kind != "raft-stereo" and path.suffix.lower() == ".onnx") else [path]
+    out: dict[str, Any] = {"matcher_sha256": _sha256(path)}
+    if len(files) > 1:
+        out["matcher_files_sha256"] = {
+            str(f.relative_to(path.parent)): _sha256(f) if f.is_file() else None for f in files
+        }
+    code_module = RAFT_STEREO_MODULE if kind == "raft-stereo" else (arch.partition(":")[0] if arch else None)
+    if code_module:
+        sources = _source_files(code_module)
+        if kind == "raft-stereo" and not sources:
+            raft_stereo_class()  # raises the one-line "put the checkout on PYTHONPATH"
+        h = hashlib.sha256()
+        for f in sources:
+            h.update(f.name.encode() + b"\0" + f.read_bytes())
+        out["matcher_code_sha256"] = h.hexdigest() if sources else None
+    return out
+
+
+__all__ = [
+    "LearnedMatcher",
+    "Matcher",
+    "OnnxMatcher",
+    "RAFT_STEREO_ARGS",
+    "SGBMMatcher",
+    "TorchMatcher",
+    "centred_padding",
+    "load_checkpoint",
+    "load_learned_matcher",
+    "model_digests",
+    "network_input",
+    "onnx_files",
+    "raft_stereo_module",
+    "torch_device",
+]

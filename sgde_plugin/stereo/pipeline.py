@@ -6,12 +6,10 @@ maps); `.build(images, masks)` then turns one frame's images into one `PriorMap`
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass
-from pathlib import Path
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import cv2
@@ -19,28 +17,49 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import InputError
-from ..rig import Rig
+from ..geometry import rotation_vector
+from ..rig import Frame, Rig
 from .backproject import BackProjection, backprojection, fuse_into
 from .filters import grey_float, lr_check, photometric_scores, refine_disparity, remove_islands
-from .matchers import Matcher, SGBMMatcher, load_learned_matcher
+from .matchers import Matcher, SGBMMatcher, load_learned_matcher, model_digests
 from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair, torch_threads
 from .virtual import virtual_pinholes
 
 PRIOR_ALGO_VERSION = "1"
 
-MATCHERS = ("sgbm", "torch", "onnx")
+MATCHERS = ("sgbm", "raft-stereo", "torch", "onnx")
+LEARNED_MATCHERS = MATCHERS[1:]
 FISHEYE_PATHS = ("direct", "virtual")
+DEVICES = ("cpu", "cuda")
+# fields that change how a prior is computed, not what it is (device, batching): not fingerprinted
+RUNTIME_FIELDS = ("device", "matcher_batch")
+# fields whose default (None) depends on the matcher: SGBM's value, a learned matcher's value
+MATCHER_DEFAULTS: dict[str, tuple[Any, Any]] = {
+    "color": (False, True),  # learned matchers were trained on RGB
+    "refine_iterations": (1, 0),  # the Gauss-Newton step undoes SGBM's pixel locking, and hurts learned output
+    "min_texture": (0.5, 0.0),  # learned matchers fill weakly textured rows from context
+}
 
 
 @dataclass(frozen=True)
 class PriorConfig:
-    """Everything that changes the prior: matcher, matching scale, depth range, filters, geometry."""
+    """Everything that changes the prior: matcher, matching scale, depth range, filters, geometry.
 
-    matcher: str = "sgbm"  # "sgbm", or a learned matcher from matcher_path: "torch" / "onnx"
-    matcher_path: str | None = None
-    matcher_arch: str | None = None  # "pkg.module:factory" for a torch state dict
+    Fields left at None take the matcher's own default (see MATCHER_DEFAULTS): after construction
+    they hold the resolved value, so readers never see None. `sgde prior --config FILE --preset NAME`
+    reaches every field (sgde_plugin.stereo.presets).
+    """
+
+    matcher: str = "sgbm"  # "sgbm"; learned: "raft-stereo" (official checkpoint), "torch", "onnx"
+    matcher_path: str | None = None  # learned matchers: checkpoint / TorchScript / ONNX file
+    matcher_arch: str | None = None  # "pkg.module:factory" building the module of a torch state dict
+    matcher_options: dict[str, Any] = field(default_factory=dict)  # factory keywords / RAFT-Stereo args
+    matcher_iters: int | None = None  # learned: forward(..., iters=N); raft-stereo default 32 (its demo's)
     matcher_input_scale: float = 1.0  # learned matchers: multiply [0, 255] pixels by this
-    matcher_flow_output: bool = False  # learned matchers: output is a flow (disparity = -x)
+    matcher_flow_output: bool | None = None  # output is a flow (disparity = -x); raft-stereo: True
+    matcher_pad: int = 32  # learned matchers: pad the input (edge values, centred) to multiples of this
+    device: str = "cpu"  # learned matchers: "cpu" or "cuda" (torch device / onnxruntime provider)
+    matcher_batch: int = 2  # learned matchers: images per forward call (same-size inputs of one frame)
     scale: float = 0.5  # matching resolution relative to the source cameras
     min_depth: float = 1.5
     max_depth: float = 80.0
@@ -52,12 +71,13 @@ class PriorConfig:
     speckle_range: int = 2
     lr_max_diff: float = 1.0  # left-right consistency, rectified pixels
     border_px: int = 2  # matches this far (+ half a block) from an image border are dropped
-    refine_iterations: int = 1  # sub-pixel Gauss-Newton steps after matching (0 = off)
+    refine_iterations: int | None = None  # sub-pixel Gauss-Newton steps after matching (0 = off); SGBM 1, learned 0
     min_zncc: float = 0.5  # photometric check after the shift (7x7 windows): ZNCC above this,
     max_abs_diff: float = 8.0  # mean absolute difference (grey levels) below this,
-    min_texture: float = 0.5  # RMS x-gradient (grey levels / px) above this (full confidence at 2x)
+    min_texture: float | None = None  # RMS x-gradient (grey levels / px) above this (full confidence at 2x);
+    #                                   0 = off; SGBM 0.5, learned 0
     min_region_px: int = 200  # final speckle filter: smallest region of similar disparity kept
-    color: bool = False  # match RGB instead of grey
+    color: bool | None = None  # match RGB instead of grey; SGBM False, learned True
     margin_px: int = 8
     max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
     max_elevation_deg: float = 50.0
@@ -66,27 +86,60 @@ class PriorConfig:
     def __post_init__(self) -> None:
         if self.matcher not in MATCHERS:
             raise InputError(None, "matcher", f"unknown matcher {self.matcher!r} (expected {', '.join(MATCHERS)})")
-        if self.matcher != "sgbm" and not self.matcher_path:
+        self._resolve_defaults()
+        self._check()
+
+    def _resolve_defaults(self) -> None:
+        """Replace the None of matcher-dependent fields by the matcher's default."""
+        learned = self.matcher in LEARNED_MATCHERS
+        for name, (sgbm, nn) in MATCHER_DEFAULTS.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, nn if learned else sgbm)
+        if self.matcher_flow_output is None:
+            object.__setattr__(self, "matcher_flow_output", self.matcher == "raft-stereo")
+        if self.matcher_iters is None and self.matcher == "raft-stereo":
+            object.__setattr__(self, "matcher_iters", 32)
+        object.__setattr__(self, "matcher_options", dict(self.matcher_options or {}))
+
+    def _check(self) -> None:
+        """One-line InputError for a value out of its range."""
+        if self.learned and not self.matcher_path:
             raise InputError(None, "matcher_path", f"matcher {self.matcher!r} needs a model file")
         if self.fisheye not in FISHEYE_PATHS:
             raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
+        if self.device not in DEVICES:
+            raise InputError(None, "device", f"expected one of {', '.join(DEVICES)}, got {self.device!r}")
         if not 0 < self.scale <= 2:
             raise InputError(None, "scale", "must be in (0, 2]")
         if not 0 < self.min_depth < self.max_depth:
             raise InputError(None, "min_depth/max_depth", "need 0 < min_depth < max_depth")
+        for name in ("block_size", "matcher_batch", "matcher_pad"):
+            if getattr(self, name) < 1:
+                raise InputError(None, name, "must be at least 1")
+        if self.block_size % 2 == 0:
+            raise InputError(None, "block_size", "must be odd")
+        if self.matcher_iters is not None and self.matcher_iters < 1:
+            raise InputError(None, "matcher_iters", "must be at least 1")
+        for name in ("refine_iterations", "min_region_px", "border_px", "margin_px", "min_texture"):
+            if getattr(self, name) < 0:
+                raise InputError(None, name, "must not be negative")
+
+    @property
+    def learned(self) -> bool:
+        """True for a learned matcher (anything but SGBM)."""
+        return self.matcher in LEARNED_MATCHERS
+
+    def settings(self) -> dict[str, Any]:
+        """Every field by name (resolved values): what `--config` files hold; PriorConfig(**settings()) == self."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
 
     def to_dict(self) -> dict[str, Any]:
-        """All settings plus the algorithm version and, for a learned matcher, the model file's hash."""
-        d: dict[str, Any] = asdict(self)
+        """The fingerprint document: every field but the runtime ones, the algorithm version and, for a
+        learned matcher, the hashes of its model files and of its architecture's source code."""
+        d = {k: v for k, v in self.settings().items() if k not in RUNTIME_FIELDS}
         d["algo_version"] = PRIOR_ALGO_VERSION
-        if self.matcher == "sgbm":
-            for key in ("matcher_path", "matcher_arch", "matcher_input_scale", "matcher_flow_output"):
-                d.pop(key)
-        else:
-            path = Path(self.matcher_path or "")
-            d["matcher_sha256"] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
-            for key in ("block_size", "p1", "p2", "uniqueness", "speckle_window", "speckle_range"):
-                d.pop(key)
+        if self.learned:
+            d.update(model_digests(self.matcher, self.matcher_path, self.matcher_arch))
         return d
 
     def make_matcher(self) -> Matcher:
@@ -97,7 +150,9 @@ class PriorConfig:
                 speckle_window=self.speckle_window, speckle_range=self.speckle_range,
             )
         return load_learned_matcher(
-            str(self.matcher_path), self.matcher_arch, self.matcher_input_scale, self.matcher_flow_output
+            str(self.matcher_path), self.matcher_arch, self.matcher_input_scale, bool(self.matcher_flow_output),
+            self.matcher_pad, kind=self.matcher, options=self.matcher_options, iters=self.matcher_iters,
+            device=self.device, batch_size=self.matcher_batch,
         )
 
 
@@ -151,6 +206,12 @@ class PairPlan:
     right: _Side
 
 
+def _same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: float = 1e-3) -> bool:
+    """True if two rigid transforms differ by less than `rot_tol` radians and `trans_tol` metres."""
+    angle = np.linalg.norm(rotation_vector(a[:3, :3].T @ b[:3, :3]))
+    return bool(angle < rot_tol and np.linalg.norm(a[:3, 3] - b[:3, 3]) < trans_tol)
+
+
 def _facing_half(fisheye: Camera, other: Camera) -> Camera:
     """The virtual pinhole half of `fisheye` that faces `other`."""
     halves = virtual_pinholes(fisheye)
@@ -162,7 +223,8 @@ class PriorBuilder:
     """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
 
     def __init__(self, rig: Rig, config: PriorConfig | None = None, threads: int | None = None):
-        self.rig = rig
+        self.rig = rig  # the geometry planned: `rig`, or `rig.as_captured(frame)` of the last frame built
+        self._base_rig = rig
         self.config = config or PriorConfig()
         # pairs processed in parallel: OpenCV's thread count by default (1 in a single-threaded worker);
         # a learned matcher parallelises inside torch instead
@@ -170,6 +232,7 @@ class PriorBuilder:
         self.threads = max(1, default if threads is None else int(threads))
         self.matcher: Matcher = self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
+        self.last_warning: str | None = None  # set by build() when the frame's prior came out empty
         self.plans: list[PairPlan] = []
         self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
         with torch_threads(1):
@@ -209,6 +272,15 @@ class PriorBuilder:
                 back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
                 sides.append(_Side(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back))
             self.plans.append(PairPlan(pair, sides[0], sides[1]))
+
+    def _plan_for(self, rig: Rig) -> None:
+        """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""
+        if all(_same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
+            return
+        self.rig = rig
+        self.plans = []
+        with torch_threads(1):
+            self._plan()
 
     @staticmethod
     def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
@@ -253,23 +325,32 @@ class PriorBuilder:
             out[name] = img
         return out
 
+    @staticmethod
+    def matcher_inputs(plan: PairPlan, left: np.ndarray, right: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The two matcher calls of a pair: (left, right) canvas columns [0, x1) for the left reference, and
+        the mirrored (right, left) columns [x0, W) for the right reference (the same size)."""
+        x0, x1 = plan.pair.core_x
+        mirrored = (np.ascontiguousarray(right[:, x0:][:, ::-1]), np.ascontiguousarray(left[:, x0:][:, ::-1]))
+        return [(left[:, :x1], right[:, :x1]), mirrored]
+
     def match_pair(
-        self, plan: PairPlan, left: np.ndarray, right: np.ndarray, valid_l: np.ndarray, valid_r: np.ndarray
+        self, plan: PairPlan, left: np.ndarray, right: np.ndarray, valid_l: np.ndarray, valid_r: np.ndarray,
+        matched: list[tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
         """Left- and right-referenced disparity and confidence over the core columns, and the matching seconds.
 
         The left reference is matched on canvas columns [0, x1) (the left padding gives every core
         pixel its full search range), the right reference on the mirrored columns [x0, W).
+        `matched` passes the matcher's answers to `matcher_inputs` when they were computed in a batch.
         """
         cfg = self.config
         D = plan.pair.max_disparity
         x0, x1 = plan.pair.core_x
         wc = x1 - x0
         t0 = time.perf_counter()
-        dl, cl = self.matcher.match(left[:, :x1], right[:, :x1], D)
-        dr_f, cr_f = self.matcher.match(
-            np.ascontiguousarray(right[:, x0:][:, ::-1]), np.ascontiguousarray(left[:, x0:][:, ::-1]), D
-        )
+        if matched is None:
+            matched = [self.matcher.match(a, b, D) for a, b in self.matcher_inputs(plan, left, right)]
+        (dl, cl), (dr_f, cr_f) = matched
         t_match = time.perf_counter() - t0
         disp_l, conf_l = dl[:, x0:], cl[:, x0:].copy()
         disp_r, conf_r = np.ascontiguousarray(dr_f[:, ::-1][:, :wc]), cr_f[:, ::-1][:, :wc].copy()
@@ -292,23 +373,33 @@ class PriorBuilder:
         for conf, a, b, disp, sign in ((conf_l2, lc, rf, disp_l, -1), (conf_r2, rc, lf, disp_r, +1)):
             ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
             conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
-            conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)  # rows without x-structure are ambiguous
+            if cfg.min_texture > 0:  # rows without x-structure are ambiguous
+                conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)
             conf *= disp / (disp + 2.0)  # small disparities (far points) give uncertain depth
             remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
     def _pair_values(
-        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
+        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None],
+        batched: Mapping[int, Any] | None = None,
     ) -> tuple[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], dict[str, float]]:
-        """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side."""
+        """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side.
+
+        `batched` maps id(plan) to (left canvas, right canvas, matcher answers, seconds) computed ahead."""
         cfg = self.config
         t0 = time.perf_counter()
-        left = plan.left.warp(grey[plan.left.camera])
-        right = plan.right.warp(grey[plan.right.camera])
+        ahead = None if batched is None else batched.get(id(plan))
+        if ahead is None:
+            left = plan.left.warp(grey[plan.left.camera])
+            right = plan.right.warp(grey[plan.right.camera])
+            matched, t_ahead = None, 0.0
+        else:
+            left, right, matched, t_ahead = ahead
         valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
         valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
         t_warp = time.perf_counter() - t0
-        disp_l, conf_l, disp_r, conf_r, t_match = self.match_pair(plan, left, right, valid_l, valid_r)
+        disp_l, conf_l, disp_r, conf_r, t_match = self.match_pair(plan, left, right, valid_l, valid_r, matched)
+        t_match += t_ahead
         t0 = time.perf_counter()
         values = [
             (side.camera, *side.back.values(disp, conf, cfg.min_depth, cfg.max_depth))
@@ -317,14 +408,21 @@ class PriorBuilder:
         return values, {"warp": t_warp, "match": t_match, "backproject": time.perf_counter() - t0}
 
     def build(
-        self, images: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray] | None = None
+        self, images: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray] | None = None,
+        frame: str | Frame | None = None,
     ) -> dict[str, PriorMap]:
         """Priors of all cameras for one frame; `masks` (True = use) default to the rig's static masks.
 
-        Pairs run in `self.threads` threads (OpenCV and NumPy release the GIL); the fusion into each
-        camera's map then happens in pair order, so the result does not depend on the thread count.
+        With `frame` (a frame of the rig, or its id), each camera is placed where it was at its own
+        capture of that frame (`Rig.as_captured`): cameras that fired at different times while the car
+        moved are rectified, triangulated and back-projected with their true relative pose; the pairs
+        are re-planned only when that geometry differs from the planned one. Pairs run in
+        `self.threads` threads (OpenCV and NumPy release the GIL); the fusion into each camera's map then
+        happens in pair order, so the result does not depend on the thread count.
         """
         t_start = time.perf_counter()
+        if frame is not None:
+            self._plan_for(self._base_rig.as_captured(frame))
         masks = dict(self._static_masks) if masks is None else dict(masks)
         masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
         for name, m in masks.items():
@@ -334,11 +432,12 @@ class PriorBuilder:
                     raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
                                      f"{cam.width}x{cam.height}")
         grey = self._prepare(images)
+        batched = self._match_batched(grey)
         if self.threads > 1 and len(self.plans) > 1:
             with ThreadPoolExecutor(self.threads) as pool:
-                results = list(pool.map(lambda p: self._pair_values(p, grey, masks), self.plans))
+                results = list(pool.map(lambda p: self._pair_values(p, grey, masks, batched), self.plans))
         else:
-            results = [self._pair_values(p, grey, masks) for p in self.plans]
+            results = [self._pair_values(p, grey, masks, batched) for p in self.plans]
         t0 = time.perf_counter()
         out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
         for values, _ in results:
@@ -353,7 +452,44 @@ class PriorBuilder:
         timings["fuse"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
         self.last_timings = timings
+        self.last_warning = self._empty_frame_warning(out)
         return out
+
+    def _match_batched(self, grey: Mapping[str, np.ndarray]) -> dict[int, Any] | None:
+        """A learned matcher's answers for every pair of the frame, same-size inputs batched; None for SGBM."""
+        match_many = getattr(self.matcher, "match_many", None)
+        if match_many is None or not self.plans:
+            return None
+        t0 = time.perf_counter()
+        canvases = [(p.left.warp(grey[p.left.camera]), p.right.warp(grey[p.right.camera])) for p in self.plans]
+        t_warp = time.perf_counter() - t0
+        inputs, ranges = [], []
+        for plan, (left, right) in zip(self.plans, canvases):
+            inputs += self.matcher_inputs(plan, left, right)
+            ranges += [plan.pair.max_disparity] * 2
+        if hasattr(self.matcher, "counts"):
+            self.matcher.counts.update(finite=0, valid=0, negative=0)
+        t0 = time.perf_counter()
+        answers = match_many(inputs, ranges)
+        t_each = (time.perf_counter() - t0 + t_warp) / len(self.plans)
+        return {
+            id(plan): (left, right, answers[2 * i : 2 * i + 2], t_each)
+            for i, (plan, (left, right)) in enumerate(zip(self.plans, canvases))
+        }
+
+    def _empty_frame_warning(self, out: Mapping[str, PriorMap]) -> str | None:
+        """One line when the rig has pairs but the frame's prior is empty, with the likeliest cause."""
+        if not self.plans or any(m.confidence.any() for m in out.values()):
+            return None
+        counts = getattr(self.matcher, "counts", None)
+        name = self.config.matcher
+        if counts and counts["finite"]:
+            if counts["negative"] > 0.5 * counts["finite"]:
+                return (f"matcher {name} gave mostly negative disparities ({counts['negative'] / counts['finite']:.0%}"
+                        " of the pixels): is the flow sign right? (matcher_flow_output)")
+            if counts["valid"] == 0:
+                return f"matcher {name} gave no valid disparity (check matcher_input_scale and matcher_flow_output)"
+        return f"no valid disparity on this frame (matcher {name}; every match failed the checks)"
 
 
 __all__ = ["PRIOR_ALGO_VERSION", "PairPlan", "PriorBuilder", "PriorConfig", "PriorMap"]

@@ -13,8 +13,10 @@ import numpy as np
 
 from ..cameras import Camera, Ocam, Pinhole
 from ..geometry import camera_mount
+from .random_rig import random_rig
+from .world import World, build_world, with_companions
 
-PRESETS = ("nuscenes", "ddad", "urban-fisheye")
+PRESETS = ("nuscenes", "ddad", "urban-fisheye", "random")
 
 # name, yaw (deg, left +), position (ego metres), focal length at 1600x900
 _NUSCENES = (
@@ -49,8 +51,10 @@ _URBAN_SIZE = (800, 768)
 _URBAN_FOV_DEG = 220.0
 
 
-def preset_ring(preset: str) -> list[str]:
-    """Camera names of a preset in ring order (last adjacent to first)."""
+def preset_ring(preset: str, seed: int = 0) -> list[str]:
+    """Camera names of a preset in ring order (last adjacent to first); `random` depends on the seed."""
+    if preset == "random":
+        return random_rig(seed, 0.05).ring
     table = {"nuscenes": _NUSCENES, "ddad": _DDAD, "urban-fisheye": _URBAN}
     if preset not in table:
         raise ValueError(f"unknown preset {preset!r} (expected one of {', '.join(PRESETS)})")
@@ -94,8 +98,14 @@ def equidistant_ocam(width: int, height: int, fov_deg: float, margin_px: float =
                 fov_deg=fov_deg)
 
 
-def preset_cameras(preset: str, scale: float = 1.0) -> list[Camera]:
-    """Cameras of a preset with their true extrinsics, in ring order; image sizes multiplied by `scale`."""
+def preset_cameras(preset: str, scale: float = 1.0, seed: int = 0) -> list[Camera]:
+    """Cameras of a preset with their true extrinsics, in ring order; image sizes multiplied by `scale`.
+
+    The `random` preset draws its rig from `seed` (`synth.random_rig`); the others ignore it.
+    """
+    if preset == "random":
+        _scaled_size(1, 1, scale)  # checks the scale
+        return list(random_rig(seed, scale).cameras)
     if preset == "nuscenes":
         w, h = _scaled_size(1600, 900, scale)
         sx = w / 1600
@@ -113,3 +123,12 @@ def preset_cameras(preset: str, scale: float = 1.0) -> list[Camera]:
         model = equidistant_ocam(w, h, _URBAN_FOV_DEG, margin_px=max(1.0, 4.0 * scale))
         return [Camera(name, model, camera_mount(math.radians(yaw), np.array(pos))) for name, yaw, pos in _URBAN]
     raise ValueError(f"unknown preset {preset!r} (expected one of {', '.join(PRESETS)})")
+
+
+def preset_world(preset: str, seed: int) -> World:
+    """The street of a seed, plus the near objects of the `random` preset's rig."""
+    world = build_world(seed)
+    if preset != "random":
+        return world
+    near = random_rig(seed).near_objects
+    return with_companions(world, [(o.center, o.half, o.yaw, o.color) for o in near])

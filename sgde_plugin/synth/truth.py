@@ -8,7 +8,8 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
-from ..geometry import invert_transform, transform_points
+from ..geometry import invert_transform
+from ..splat import lift_depth_torch, transform_points_torch
 from .render import RayTiles, torch_threads, trace
 from .world import World
 
@@ -88,14 +89,14 @@ def cross_view_pixels(world: World, cam_a: Camera, cam_b: Camera, ego_to_world: 
 def _cross_view_pixels(world: World, cam_a: Camera, cam_b: Camera, ego_to_world: np.ndarray, time_s: float,
                        rgb_a: np.ndarray, depth_a: np.ndarray, rgb_b: np.ndarray, depth_b: np.ndarray,
                        depth_tol: float, colour_tol: float) -> CrossViewPixels:
-    vv, uu = np.nonzero(depth_a > 0)
+    a_to_b = torch.as_tensor(invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego)
+    pts_a, lifted = lift_depth_torch(torch.as_tensor(np.asarray(depth_a, dtype=np.float64)), cam_a)
+    vv, uu = np.nonzero(lifted.numpy())
     uv_a = np.stack([uu, vv], axis=1).astype(np.float64)
-    pts_a, ok = cam_a.intrinsics.points_from_depth(uv_a, depth_a[vv, uu].astype(np.float64))
-    a_to_b = invert_transform(cam_b.sensor_to_ego) @ cam_a.sensor_to_ego
-    pts_b = transform_points(a_to_b, pts_a)
+    pts_b = transform_points_torch(a_to_b, pts_a).numpy()
     uv_b, inside = cam_b.intrinsics.project(pts_b)
     h, w = depth_b.shape
-    inside &= ok & (uv_b[:, 0] >= 0) & (uv_b[:, 0] <= w - 1) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] <= h - 1)
+    inside &= (uv_b[:, 0] >= 0) & (uv_b[:, 0] <= w - 1) & (uv_b[:, 1] >= 0) & (uv_b[:, 1] <= h - 1)
     idx = np.nonzero(inside)[0]
     _, corners = _bilinear(cam_b.intrinsics.valid_mask().astype(np.float64), uv_b[idx])
     idx = idx[(corners > 0.5).all(0)]

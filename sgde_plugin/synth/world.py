@@ -244,3 +244,25 @@ def build_world(seed: int) -> World:
         noise=make_noise_bank(int(rng.integers(2**31))),
         sun=sun / np.linalg.norm(sun),
     )
+
+
+def with_companions(world: World, boxes: list[tuple], time_s: float = 0.0) -> World:
+    """The world plus boxes that drive along with the ego (metal material).
+
+    Each entry is (centre, half sizes, yaw, colour) in ego coordinates at `time_s`; the box gets the
+    ego's velocity, so it stays beside the car (the ego's lane sway moves it by at most 0.25 m).
+    """
+    if not boxes:
+        return world
+    from dataclasses import replace
+
+    pose = world.ego_pose(time_s)
+    heading = math.atan2(pose[1, 0], pose[0, 0])
+    extra = _Boxes()
+    for center, half, yaw, colour in boxes:
+        c = pose @ np.array([*center, 1.0])
+        start = c[:3] - np.array([world.ego_speed * time_s, 0.0, 0.0])
+        extra.add(tuple(start), tuple(half), yaw + heading, (world.ego_speed, 0.0, 0.0), METAL, tuple(colour),
+                  tex_offset=(float(abs(c[0]) % 100), float(abs(c[1]) % 100)))
+    new = extra.arrays()
+    return replace(world, **{k: np.concatenate([getattr(world, k), v]) for k, v in new.items()})

@@ -1,0 +1,148 @@
+"""Prior settings from presets, YAML files and command-line overrides, checked field by field.
+
+A `PriorConfig` is resolved in layers, later ones winning: the field defaults, a named per-data-set
+preset (`PRESETS`), a YAML file (a flat mapping of PriorConfig field names; it may name a `preset`
+itself), then explicit overrides (the command line). An unknown key or a value of the wrong type is
+refused with one line naming the file and the key. `save_prior_config` writes every field, so
+`load_prior_config(save_prior_config(c))` gives `c` back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+from .pipeline import MATCHER_DEFAULTS, PriorConfig
+
+# Per-data-set settings over the field defaults (which are the synthetic world's, where they were tuned).
+# Ground-truth ranges: DDAD's LiDAR reaches 200 m, nuScenes' evaluation stops at 80 m.
+PRESETS: dict[str, dict[str, Any]] = {
+    "synthetic": {},
+    "nuscenes": {"max_depth": 80.0},
+    "ddad": {"max_depth": 200.0},
+    "fisheye": {"fisheye": "direct"},
+}
+PRESET_KEY = "preset"
+MATCHER_DEPENDENT = (*MATCHER_DEFAULTS, "matcher_flow_output", "matcher_iters")
+
+
+def _kind(annotation: Any) -> tuple[str, bool]:
+    """(base type name, None allowed) of a PriorConfig field annotation such as 'float | None'."""
+    parts = [p.strip() for p in str(annotation).split("|")]
+    nullable = "None" in parts
+    base = next((p for p in parts if p != "None"), "Any")
+    return ("dict" if base.startswith("dict") else base), nullable
+
+
+def _check_value(name: str, value: Any, source: str | Path | None) -> Any:
+    """`value` for field `name`, type-checked (ints accepted for floats); one-line InputError otherwise."""
+    field = {f.name: f for f in dataclasses.fields(PriorConfig)}[name]
+    base, nullable = _kind(field.type)
+    if value is None:
+        if nullable:
+            return None
+        raise InputError(source, name, "must not be empty")
+    expected = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string",
+                "dict": "a mapping"}.get(base)
+    ok = {
+        "int": isinstance(value, int) and not isinstance(value, bool),
+        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+        "bool": isinstance(value, bool),
+        "str": isinstance(value, str),
+        "dict": isinstance(value, Mapping),
+    }.get(base, True)
+    if not ok:
+        raise InputError(source, name, f"expected {expected}, got {value!r}")
+    if base == "float":
+        return float(value)
+    if base == "dict":
+        return dict(value)
+    return value
+
+
+def check_settings(values: Mapping[str, Any], source: str | Path | None = None) -> dict[str, Any]:
+    """Validate a mapping of PriorConfig settings: known keys, right types. Returns a plain dict."""
+    names = [f.name for f in dataclasses.fields(PriorConfig)]
+    out = {}
+    for key, value in values.items():
+        if key not in names:
+            raise InputError(source, str(key), "unknown setting (see `sgde prior --help` or PriorConfig's fields)")
+        out[key] = _check_value(key, value, source)
+    return out
+
+
+def preset_settings(name: str, source: str | Path | None = None) -> dict[str, Any]:
+    """The settings of a named preset."""
+    if name not in PRESETS:
+        raise InputError(source, PRESET_KEY, f"unknown preset {name!r} (expected {', '.join(PRESETS)})")
+    return dict(PRESETS[name])
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A YAML settings file as a checked mapping (its `preset` key, if any, kept)."""
+    import yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise InputError(path, None, f"not valid YAML{where}") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, Mapping):
+        raise InputError(path, None, "expected a mapping of PriorConfig settings")
+    preset = doc.get(PRESET_KEY)
+    if preset is not None and not isinstance(preset, str):
+        raise InputError(path, PRESET_KEY, f"expected a preset name, got {preset!r}")
+    out = check_settings({k: v for k, v in doc.items() if k != PRESET_KEY}, path)
+    if preset is not None:
+        out[PRESET_KEY] = preset
+    return out
+
+
+def load_prior_config(
+    file: str | Path | None = None, preset: str | None = None, overrides: Mapping[str, Any] | None = None
+) -> PriorConfig:
+    """PriorConfig from defaults < preset (argument, else the file's) < file < overrides (None values skipped)."""
+    from_file = read_config_file(file) if file is not None else {}
+    name = preset if preset is not None else from_file.pop(PRESET_KEY, None)
+    from_file.pop(PRESET_KEY, None)
+    settings: dict[str, Any] = preset_settings(name, file if preset is None else None) if name else {}
+    settings.update(from_file)
+    settings.update(check_settings({k: v for k, v in (overrides or {}).items() if v is not None}))
+    try:
+        return PriorConfig(**settings)
+    except InputError as exc:
+        key = exc.key
+        blame = file if file is not None and key in from_file else None
+        raise InputError(blame, key, exc.problem) from None
+
+
+def save_prior_config(config: PriorConfig, path: str | Path) -> Path:
+    """Write every setting of `config` as YAML (atomically); reading it back gives the same config."""
+    import yaml
+
+    from ..io import atomic_write_text
+
+    settings = config.settings()
+    plain = PriorConfig(matcher=config.matcher, matcher_path=config.matcher_path)
+    for name in MATCHER_DEPENDENT:  # null = "the matcher's default", so a file stays right when the matcher changes
+        if settings[name] == getattr(plain, name):
+            settings[name] = None
+    text = "# sgde prior settings (PriorConfig); null = the default; load with `sgde prior --config FILE`\n"
+    text += yaml.safe_dump(settings, sort_keys=False, default_flow_style=None)
+    atomic_write_text(Path(path), text)
+    return Path(path)
+
+
+__all__ = ["PRESETS", "check_settings", "load_prior_config", "preset_settings", "read_config_file",
+           "save_prior_config"]

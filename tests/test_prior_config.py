@@ -1,0 +1,155 @@
+"""Prior settings: every PriorConfig field reachable from a YAML file and the command line, presets, the
+round trip through a file, the fingerprint following every setting, and one-line refusals.
+
+Runtime ~6 s on 2 cores (one 1-frame synthetic rig at 400x225 for the command-line build).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from sgde_plugin.cache.fingerprints import config_document, digest, fingerprint
+from sgde_plugin.cache.store import PriorCache
+from sgde_plugin.cli import build_parser
+from sgde_plugin.cli import main as cli_main
+from sgde_plugin.commands.prior import SETTING_OPTIONS, load_rig_with_override, settings_from_args
+from sgde_plugin.errors import InputError
+from sgde_plugin.stereo.pipeline import RUNTIME_FIELDS, PriorConfig
+from sgde_plugin.stereo.presets import PRESETS, load_prior_config, read_config_file, save_prior_config
+
+# a value other than the default for every field (all valid together)
+CHANGED = {
+    "matcher": "torch", "matcher_arch": "pkg.mod:make", "matcher_options": {"width": 3, "names": ["a", "b"]},
+    "matcher_iters": 7, "matcher_input_scale": 1 / 255, "matcher_flow_output": True, "matcher_pad": 8,
+    "device": "cuda", "matcher_batch": 4, "scale": 0.25, "min_depth": 2.0, "max_depth": 150.0, "block_size": 5,
+    "p1": 4, "p2": 64, "uniqueness": 5, "speckle_window": 50, "speckle_range": 3, "lr_max_diff": 1.5,
+    "border_px": 3, "refine_iterations": 2, "min_zncc": 0.4, "max_abs_diff": 10.0, "min_texture": 0.25,
+    "min_region_px": 100, "color": False, "margin_px": 4, "max_azimuth_deg": 70.0, "max_elevation_deg": 40.0,
+    "fisheye": "virtual",
+}
+
+
+@pytest.fixture
+def model(tmp_path):
+    path = tmp_path / "model.pt"
+    path.write_bytes(b"weights")
+    return path
+
+
+def test_every_field_round_trips_through_a_file_and_has_an_option(model, tmp_path):
+    names = [f.name for f in dataclasses.fields(PriorConfig)]
+    assert sorted(CHANGED) == sorted(n for n in names if n != "matcher_path")
+    config = PriorConfig(**CHANGED, matcher_path=str(model))
+    default = PriorConfig(matcher="torch", matcher_path=str(model))
+    assert all(getattr(config, n) != getattr(default, n) for n in CHANGED if n != "matcher")
+    assert load_prior_config(save_prior_config(config, tmp_path / "c.yaml")) == config
+    assert PriorConfig(**config.settings()) == config
+    for preset in PRESETS:  # presets and matcher-dependent defaults survive the round trip too
+        for matcher in ("sgbm", "raft-stereo"):
+            c = load_prior_config(preset=preset, overrides={"matcher": matcher, "matcher_path": str(model)})
+            assert load_prior_config(save_prior_config(c, tmp_path / "p.yaml")) == c
+    # every field has a command-line option (matcher_options through --matcher-option KEY=VALUE)
+    options = {name for name, _, _ in SETTING_OPTIONS} | {"matcher_options"}
+    assert options == set(names)
+    args = build_parser().parse_args(
+        ["prior", "D", "--out", "C", "--matcher", "torch", "--matcher-path", str(model), "--block-size", "5",
+         "--no-color", "--matcher-flow-output", "--min-zncc", "0.4", "--matcher-option", "width=3",
+         "--matcher-option", "names=[a, b]"])
+    got = load_prior_config(overrides=settings_from_args(args))
+    assert (got.block_size, got.color, got.matcher_flow_output, got.min_zncc) == (5, False, True, 0.4)
+    assert got.matcher_options == {"width": 3, "names": ["a", "b"]}
+
+
+def test_matcher_dependent_defaults_and_layer_order(model, tmp_path):
+    sgbm, learned = PriorConfig(), PriorConfig(matcher="raft-stereo", matcher_path=str(model))
+    assert (sgbm.refine_iterations, sgbm.color, sgbm.min_texture, sgbm.matcher_flow_output) == (1, False, 0.5, False)
+    assert (learned.refine_iterations, learned.color, learned.min_texture) == (0, True, 0.0)
+    assert learned.matcher_flow_output and learned.matcher_iters == 32
+    # a saved SGBM file switched to a learned matcher takes the learned defaults (nulls, not SGBM's values)
+    path = save_prior_config(sgbm, tmp_path / "s.yaml")
+    switched = load_prior_config(path, overrides={"matcher": "onnx", "matcher_path": str(model)})
+    assert (switched.refine_iterations, switched.color) == (0, True)
+    # defaults < preset < file < overrides; a file may name its preset
+    path.write_text("preset: ddad\nuniqueness: 9\n")
+    assert load_prior_config(path).max_depth == 200.0 and load_prior_config(path).uniqueness == 9
+    assert load_prior_config(path, preset="nuscenes").max_depth == 80.0
+    assert load_prior_config(path, overrides={"max_depth": 120, "uniqueness": None}).max_depth == 120.0
+    assert read_config_file(path) == {"preset": "ddad", "uniqueness": 9}
+
+
+def test_fingerprint_follows_every_setting_but_the_runtime_ones(model):
+    base = PriorConfig(matcher="torch", matcher_path=str(model))
+    base_fp = digest(config_document(base))
+    for name, value in CHANGED.items():
+        if name == "matcher":
+            continue
+        changed = dataclasses.replace(base, **{name: value})
+        same = digest(config_document(changed)) == base_fp
+        assert same == (name in RUNTIME_FIELDS), name
+    for preset, settings in PRESETS.items():  # a preset is exactly its settings, fingerprint included
+        explicit = PriorConfig(**settings)
+        assert digest(config_document(load_prior_config(preset=preset))) == digest(config_document(explicit))
+    assert digest(config_document(load_prior_config(preset="ddad"))) != digest(config_document(PriorConfig()))
+    model.write_bytes(b"other weights")
+    assert digest(config_document(base)) != base_fp
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("uniqness: 9\n", "uniqness: unknown setting"),
+        ("uniqueness: many\n", "uniqueness: expected an integer, got 'many'"),
+        ("scale: 3.0\n", "scale: must be in (0, 2]"),
+        ("color: 1\n", "color: expected true or false, got 1"),
+        ("fisheye: sideways\n", "fisheye: expected one of direct, virtual"),
+        ("preset: mars\n", "preset: unknown preset 'mars'"),
+        ("[1, 2]\n", "expected a mapping"),
+        ("scale: [\n", "not valid YAML"),
+    ],
+)
+def test_sgde_prior_refuses_a_bad_config_file_in_one_line(tmp_path, capsys, text, needle):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    code = cli_main(["prior", str(tmp_path / "no-rig-needed"), "--out", str(tmp_path / "c"), "--config", str(path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert str(path) in err[0] and needle in err[0], err[0]
+    assert not (tmp_path / "c").exists()
+
+
+def test_bad_command_line_values_and_presets_are_one_line(tmp_path, capsys):
+    for argv, needle in (
+        (["--preset", "mars"], "preset: unknown preset 'mars'"),
+        (["--device", "tpu"], "device: expected one of cpu, cuda"),
+        (["--matcher-option", "novalue"], "--matcher-option: expected KEY=VALUE"),
+        (["--matcher", "raft-stereo"], "matcher_path: matcher 'raft-stereo' needs a model file"),
+    ):
+        code = cli_main(["prior", str(tmp_path), "--out", str(tmp_path / "c"), *argv])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and needle in err[0], (argv, err)
+    with pytest.raises(InputError, match="block_size: must be odd"):
+        PriorConfig(block_size=4)
+
+
+def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_path, capsys):
+    synth = pytest.importorskip("sgde_plugin.synth.sequence")
+    root = synth.write_synth("nuscenes", 1, tmp_path / "nus", scale=0.25)
+    true_rig = str(root / "rig_true.json")
+    path = tmp_path / "prior.yaml"
+    path.write_text("preset: ddad\nuniqueness: 12\nmin_region_px: 150\n")
+    out = str(tmp_path / "cache")
+    argv = ["prior", str(root), "--out", out, "--rig", true_rig, "--workers", "1", "--config", str(path)]
+    assert cli_main([*argv, "--min-region-px", "120"]) == 0
+    capsys.readouterr()
+    rig = load_rig_with_override(str(root), true_rig)
+    expected = PriorConfig(max_depth=200.0, uniqueness=12, min_region_px=120)
+    assert PriorCache(out).fingerprint == fingerprint(rig, expected)
+    # the same settings from another file are the same cache; a changed file is refused, naming the change
+    save_prior_config(expected, tmp_path / "same.yaml")
+    assert cli_main(["prior", str(root), "--out", out, "--rig", true_rig, "--config", str(tmp_path / "same.yaml")]) == 0
+    assert "0 frames built, 1 already there" in capsys.readouterr().out
+    assert cli_main([*argv, "--preset", "nuscenes", "--min-region-px", "120"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "max_depth 200.0 -> 80.0" in err[0]
