@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .options import number
+
 HELP = "evaluate cached depth priors against the rig folder's ground truth (accuracy and overlap coverage)"
 
 
@@ -17,12 +19,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--truth", help="sgde-rig/1 file with the TRUE extrinsics that define the overlap (default: "
         "DIR/rig_true.json when present, else DIR's own rig)",
     )
-    parser.add_argument("--max-depth", type=float, default=80.0, help="ground truth beyond this is ignored (80 m)")
+    parser.add_argument("--max-depth", type=number(0, 1e4, lo_open=True), default=80.0,
+                        help="ground truth beyond this is ignored (80 m)")
     parser.add_argument("--masks", help="folder of static masks <camera>.png for cameras without their own: "
                         "masked pixels leave the ground truth and the overlap")
     parser.add_argument("--curve", action="store_true",
                         help="also print coverage and Abs Rel at each confidence threshold (sparsification curve)")
-    parser.add_argument("--min-confidence", type=float, default=0.0,
+    parser.add_argument("--min-confidence", type=number(0, 1), default=0.0,
                         help="evaluate only prior values whose confidence reaches this (0-1, default 0: all)")
 
 
@@ -57,8 +60,6 @@ def run(args: argparse.Namespace) -> int:
     from ..stereo.evaluate import PriorEvaluator, report_rows
     from ..tables import format_table
 
-    if not 0.0 <= args.min_confidence <= 1.0:
-        raise InputError(None, "--min-confidence", "must be between 0 and 1")
     rig = load_rig(args.dir)
     if args.masks:
         from ..masks import attach_masks
@@ -66,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
         rig = attach_masks(rig, args.masks)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
+    cache.check_frames(rig)  # the priors of another scene whose frames share ids are refused
     cached_cams = set(cache.cameras())
     missing = [c for c in rig.camera_names if c not in cached_cams]
     if missing:
