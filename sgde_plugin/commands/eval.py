@@ -82,12 +82,7 @@ def run(args: argparse.Namespace) -> int:
     lidar = not any(f.depths for f in frames)  # sparse truth: the overlap cannot be confirmed by the neighbour
     evaluator = PriorEvaluator(rig_true, args.max_depth, sparse_truth=lidar)
     for frame in progress(frames, desc="eval", total=len(frames)):
-        priors, confs = {}, {}
-        for cam in rig.camera_names:
-            depth, valid, conf = cache.get_prior(frame.id, cam)
-            keep = valid & (conf >= args.min_confidence - 0.5 / 255) if args.min_confidence > 0 else valid
-            priors[cam] = depth * keep
-            confs[cam] = conf
+        priors, confs = _cached_priors(cache, frame.id, rig.camera_names, args.min_confidence)
         gts = {cam: rig.load_depth(frame.id, cam) for cam in rig.camera_names}
         evaluator.add(priors, gts, masks, frame=frame.id, confidences=confs if args.curve else None)
     report = evaluator.result()
@@ -108,6 +103,17 @@ def run(args: argparse.Namespace) -> int:
     if args.json_out:
         atomic_write_text(args.json_out, json.dumps(_plain(report), indent=1, allow_nan=False) + "\n")
     return 0
+
+
+def _cached_priors(cache, frame_id: str, cameras: list[str], min_confidence: float) -> tuple[dict, dict]:
+    """Prior depth (0 where none, or below `min_confidence`) and confidence of every camera of a frame."""
+    priors, confs = {}, {}
+    for cam in cameras:
+        depth, valid, conf = cache.get_prior(frame_id, cam)
+        if min_confidence > 0:
+            valid = valid & (conf >= min_confidence - 0.5 / 255)
+        priors[cam], confs[cam] = depth * valid, conf
+    return priors, confs
 
 
 def _plain(value):
