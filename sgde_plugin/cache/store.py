@@ -312,10 +312,16 @@ class PriorCache:
             )
         return s, fi, ci, cam, raw.astype(np.float32)
 
-    def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None,
+            min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(depth float32 metres, valid bool) at native size, or resized to size=(h, w) without
         inventing depths (min-pool of valid values, then nearest). A missing or corrupted chunk raises
-        InputError naming the scene, frame and camera."""
+        InputError naming the scene, frame and camera. With `min_confidence` > 0 only values whose
+        stored confidence (steps of 1/255) rounds to at least it are kept (the rest read as no value)."""
+        if min_confidence > 0:
+            depth, _, conf = self.get_prior(frame_id, camera, size)
+            depth = np.where(conf >= np.float32(min_confidence - 0.5 / 255), depth, 0).astype(np.float32)
+            return depth, depth > 0
         size = check_size(size)
         _, _, _, cam, depth = self._depth(frame_id, camera)
         if size is not None and size != (cam.height, cam.width):
