@@ -12,6 +12,9 @@ from typing import Any
 _EXPORTS = {
     "PriorDepthNet": "bevdepth",
     "PriorInjector": "bevdepth",
+    "inject_prior": "bevdepth",
+    "PRIOR_KEY": "prior_path",
+    "PriorFeed": "prior_path",
     "DepthToVoxelProposals": "voxformer",
     "RigDepthToVoxelProposals": "voxformer",
     "VoxelGrid": "voxel_grids",
