@@ -94,11 +94,26 @@ def test_validate_decodes_every_image_and_quick_reads_headers(rig_dir, capsys):
     corrupt[len(data) // 2] ^= 0xFF  # inside the pixel data: the chunk's CRC no longer matches
     _png(rig_dir).write_bytes(bytes(corrupt))
     assert main(["validate", str(rig_dir)]) == 2
-    assert "CAM_BACK.png: cannot decode image" in _one_line(capsys)
+    assert "CAM_BACK.png: corrupted PNG (IDAT chunk at byte" in _one_line(capsys)
     _png(rig_dir).unlink()
     _png(rig_dir).mkdir()  # a folder where the image belongs
     assert main(["validate", str(rig_dir)]) == 2
     assert "CAM_BACK.png: cannot read" in _one_line(capsys)
+
+
+def test_damaged_images_are_refused_by_the_readers_without_decoder_noise(rig_dir, capfd):
+    from sgde_plugin.io import read_image
+
+    data = _png(rig_dir).read_bytes()
+    expected = read_image(_png(rig_dir))
+    for damaged, problem in ((data[:-100], "truncated PNG"), (data[:60] + bytes([data[60] ^ 1]) + data[61:],
+                                                               "corrupted PNG")):
+        _png(rig_dir).write_bytes(damaged)
+        with pytest.raises(InputError, match=problem):
+            read_image(_png(rig_dir))
+    assert capfd.readouterr().err == ""  # nothing from libpng on stderr
+    _png(rig_dir).write_bytes(data)
+    np.testing.assert_array_equal(read_image(_png(rig_dir)), expected)
 
 
 def test_deeply_nested_json_is_one_line(rig_dir, capsys):

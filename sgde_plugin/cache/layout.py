@@ -152,6 +152,9 @@ def scene_problems(attrs: Mapping[str, Any], arrays: Mapping[str, Any]) -> list[
         shape = tuple(arrays[name].shape)
         if shape[1:] != (c, h, w) or shape[0] < n:
             problems.append(f"array {name!r} has shape {list(shape)}, the attributes say ({n}, {c}, {h}, {w})")
+    for name, dtype in (("depth", "float16"), ("confidence", "uint8"), ("valid_pixels", "int32")):
+        if str(arrays[name].dtype) != dtype:
+            problems.append(f"array {name!r} has dtype {arrays[name].dtype}, expected {dtype}")
     shape = tuple(arrays["valid_pixels"].shape)
     if shape[1:] != (c,) or shape[0] < n:
         problems.append(f"array 'valid_pixels' has shape {list(shape)}, the attributes say ({n}, {c})")

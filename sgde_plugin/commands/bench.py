@@ -1,4 +1,4 @@
-"""`sgde bench [NAME ...] [--json OUT] [--fast]`: run the benchmark suite and describe the machine."""
+"""`sgde bench [NAME ...] [--json OUT] [--fast] [--supervision {lidar,self}]`: run benchmarks, describe the machine."""
 
 from __future__ import annotations
 
@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {names}")
     parser.add_argument("--json", dest="json_out", help="write all results to this JSON file")
     parser.add_argument("--fast", action="store_true", help="smaller sizes, and skip the slow benchmarks unless named")
+    parser.add_argument("--supervision", choices=("lidar", "self"), default="lidar",
+                        help="train-effect: LiDAR-like supervision (default) or self-supervised view synthesis")
     parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
                         help="`real` only: another pose source (sgde-rig/1 extrinsics, e.g. a calibration); repeatable")
 
@@ -95,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"== {n}", flush=True)
         try:
             module = importlib.import_module(f"sgde_plugin.benchmarks.{BENCHMARKS[n]}")
-            result = module.run(fast=args.fast)
+            options = {"supervision": args.supervision} if n == "train-effect" else {}
+            result = module.run(fast=args.fast, **options)
         except ModuleNotFoundError as exc:
             result = {"error": f"not available: {exc}"}
             failed += 1

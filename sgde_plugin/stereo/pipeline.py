@@ -20,7 +20,16 @@ from ..errors import InputError
 from ..geometry import rotation_vector
 from ..rig import Frame, Rig
 from .backproject import BackProjection, backprojection, fuse_into
-from .filters import grey_float, lr_check, photometric_scores, refine_disparity, remove_islands
+from .filters import (
+    NORMALIZATIONS,
+    discontinuity_factor,
+    grey_float,
+    lr_check,
+    normalize_image,
+    photometric_scores,
+    refine_disparity,
+    remove_islands,
+)
 from .matchers import Matcher, SGBMMatcher, load_learned_matcher, model_digests
 from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair, torch_threads
 from .virtual import virtual_pinholes
@@ -82,6 +91,10 @@ class PriorConfig:
     max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
     max_elevation_deg: float = 50.0
     fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
+    confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
+    edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
+    normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
+    normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
 
     def __post_init__(self) -> None:
         if self.matcher not in MATCHERS:
@@ -105,6 +118,8 @@ class PriorConfig:
         """One-line InputError for a value out of its range."""
         if self.learned and not self.matcher_path:
             raise InputError(None, "matcher_path", f"matcher {self.matcher!r} needs a model file")
+        if self.normalize not in NORMALIZATIONS:
+            raise InputError(None, "normalize", f"expected one of {', '.join(NORMALIZATIONS)}")
         if self.fisheye not in FISHEYE_PATHS:
             raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
         if self.device not in DEVICES:
@@ -375,7 +390,9 @@ class PriorBuilder:
             conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
             if cfg.min_texture > 0:  # rows without x-structure are ambiguous
                 conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)
-            conf *= disp / (disp + 2.0)  # small disparities (far points) give uncertain depth
+            conf *= disp / (disp + cfg.confidence_disparity_px)  # small disparities give uncertain depth
+            if cfg.edge_jump_px > 0:
+                conf *= discontinuity_factor(disp, conf > 0, cfg.edge_jump_px)
             remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
@@ -397,6 +414,9 @@ class PriorBuilder:
             left, right, matched, t_ahead = ahead
         valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
         valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
+        if cfg.normalize != "none":
+            left = normalize_image(left, valid_l, cfg.normalize, cfg.normalize_sigma)
+            right = normalize_image(right, valid_r, cfg.normalize, cfg.normalize_sigma)
         t_warp = time.perf_counter() - t0
         disp_l, conf_l, disp_r, conf_r, t_match = self.match_pair(plan, left, right, valid_l, valid_r, matched)
         t_match += t_ahead
