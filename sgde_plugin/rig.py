@@ -15,6 +15,7 @@ from .errors import InputError
 from .geometry import ORTHONORMAL_TOL, invert_transform, rotation_error
 from .io import atomic_write_text, image_size, is_plain_name, read_depth_png, read_image, read_mask
 from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
+from .panorama import load_panorama_depth
 
 FORMAT = "sgde-rig/1"
 MAX_MOUNT_M = 1e3  # a camera mounted farther than this from the ego origin is a unit or typing error
@@ -186,8 +187,6 @@ class Rig:
         if path is None:
             return None
         if Path(path).suffix.lower() in (".tif", ".tiff"):
-            from .readers.omnimvs import load_panorama_depth
-
             return load_panorama_depth(path, self.camera(camera))
         return read_depth_png(path)
 
