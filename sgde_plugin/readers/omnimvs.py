@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera, intrinsics_from_dict
+from ..cameras import Camera
 from ..errors import InputError
 from ..geometry import CAMERA_TO_BODY, make_transform, rodrigues
 from ..io import image_size
@@ -46,6 +46,7 @@ from ..panorama import (
     read_inverse_depth_tiff,
 )
 from ..rig import Frame, Rig, ring_pairs
+from ..rigfile import intrinsics_from_dict
 
 CONFIG = "config.yaml"
 DEFAULT_IMG_FMT = "cam%d/%04d.png"
