@@ -93,6 +93,7 @@ class PriorConfig:
     fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
     confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
     edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
+    antialias: bool = False  # low-pass each image before it is resampled at `scale` (Gaussian, decimation sigma)
     normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
     normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
 
@@ -337,6 +338,9 @@ class PriorBuilder:
                 raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
             if not self.config.color and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+            if self.config.antialias and self.config.scale < 1:
+                # the canvas samples the image about every 1/scale pixels: low-pass it first (no aliasing)
+                img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.scale**-2 - 1)))
             out[name] = img
         return out
 
