@@ -145,7 +145,7 @@ def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_p
     assert cli_main([*argv, "--min-region-px", "120"]) == 0
     capsys.readouterr()
     rig = load_rig_with_override(str(root), true_rig)
-    expected = PriorConfig(max_depth=200.0, uniqueness=12, min_region_px=120)
+    expected = PriorConfig(**{**PRESETS["ddad"], "uniqueness": 12, "min_region_px": 120})
     assert PriorCache(out).fingerprint == fingerprint(rig, expected)
     # the same settings from another file are the same cache; a changed file is refused, naming the change
     save_prior_config(expected, tmp_path / "same.yaml")
