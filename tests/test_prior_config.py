@@ -28,6 +28,7 @@ CHANGED = {
     "border_px": 3, "refine_iterations": 2, "min_zncc": 0.4, "max_abs_diff": 10.0, "min_texture": 0.25,
     "min_region_px": 100, "color": False, "margin_px": 4, "max_azimuth_deg": 70.0, "max_elevation_deg": 40.0,
     "fisheye": "virtual", "confidence_disparity_px": 4.0, "edge_jump_px": 2.0, "normalize": "local", "antialias": True,
+    "min_confidence": 0.3,
     "normalize_sigma": 6.0,
 }
 
