@@ -105,6 +105,7 @@ def test_fingerprint_follows_every_setting_but_the_runtime_ones(model):
         ("uniqueness: many\n", "uniqueness: expected an integer, got 'many'"),
         ("scale: 3.0\n", "scale: must be in (0, 2]"),
         ("color: 1\n", "color: expected true or false, got 1"),
+        ("min_zncc: .nan\n", "min_zncc: must be a finite number"),
         ("fisheye: sideways\n", "fisheye: expected one of direct, virtual"),
         ("preset: mars\n", "preset: unknown preset 'mars'"),
         ("[1, 2]\n", "expected a mapping"),
