@@ -36,12 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera, intrinsics_from_dict
+from ..cameras import Camera
 from ..errors import InputError
 from ..geometry import invert_transform, make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
+from ..rigfile import intrinsics_from_dict
 from .jsonio import get, read_json
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")

@@ -31,12 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera, intrinsics_from_dict
+from ..cameras import Camera
 from ..errors import InputError
 from ..geometry import make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import CameraCapture, Frame, Rig, ring_pairs
+from ..rigfile import intrinsics_from_dict
 from .jsonio import get, number_list, read_json, scan_table
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
