@@ -226,8 +226,8 @@ class Pinhole(CameraModel):
         return rays, converged & self.in_image(uv)
 
     @property
-    def fov_deg(self) -> float:
-        """Horizontal field of view through the principal point, degrees."""
+    def hfov_deg(self) -> float:
+        """Horizontal field of view through the principal point, degrees (the fisheyes' `fov_deg` is a cone angle)."""
         rays, _ = self.unproject(np.array([[-0.5, self.K[1, 2]], [self.width - 0.5, self.K[1, 2]]]))
         return float(np.degrees(np.arctan2(-rays[0, 0], rays[0, 2]) + np.arctan2(rays[1, 0], rays[1, 2])))
 
