@@ -17,6 +17,7 @@ import torch
 from torch.utils.data import Dataset
 
 from ..errors import InputError
+from ..rig import Rig
 from .resample import as_affine, resize_matrix, warp_depth, warp_image
 from .store import PriorCache, check_size
 
@@ -36,7 +37,7 @@ class PriorDataset(Dataset):
 
     def __init__(
         self,
-        rig: Any,
+        rig: Rig,
         cache: Any,
         size: tuple[int, int],
         *,
