@@ -204,10 +204,6 @@ class Rig:
         """The same rig with top-level keys added to `rig.json` (e.g. a calibration block)."""
         return replace(self, extra={**dict(self.extra), **extra})
 
-    def subset_frames(self, start: int, stop: int) -> Rig:
-        """The same rig with frames[start:stop]."""
-        return replace(self, frames=self.frames[start:stop])
-
     # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """The `rig.json` document (unknown top-level keys kept)."""

@@ -205,16 +205,6 @@ class PriorCache:
                 seen.setdefault(c.name, None)
         return list(seen)
 
-    def camera_size(self, camera: str, frame_id: str | None = None) -> tuple[int, int]:
-        """Native (height, width) of a camera's prior."""
-        for name, s in self._open()["scenes"].items():
-            if frame_id is not None and self._locate(frame_id)[0] != name:
-                continue
-            if camera in s["camera_index"]:
-                entry = s["cameras"][s["camera_index"][camera]]
-                return entry.height, entry.width
-        raise KeyError(camera)
-
     def config(self) -> dict[str, Any]:
         """The configuration document the cache was built with (config, algo_version, format)."""
         return dict(self._open()["root_attrs"].get("config", {}))
