@@ -7,6 +7,7 @@ the optional mmdet3d registration.
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import Any
 
 _EXPORTS = {
@@ -57,8 +58,6 @@ def __dir__() -> list[str]:
 
 
 def _register_if_mmdet3d_loaded() -> None:
-    import sys
-
     if "mmdet3d" in sys.modules and "mmengine" in sys.modules:
         importlib.import_module(f"{__name__}.registry").register_if_loaded()
 

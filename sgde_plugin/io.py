@@ -6,6 +6,7 @@ import io
 import os
 import struct
 import tempfile
+import warnings
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -141,8 +142,6 @@ def read_image(path: str | Path) -> np.ndarray:
 def decode_check(path: str | Path) -> None:
     """Decode an image file completely (not only its header); InputError naming the file when it is
     truncated or corrupted. Uses Pillow, which reports problems as exceptions, not on stderr."""
-    import warnings
-
     from PIL import Image
 
     data = _read_file(path)

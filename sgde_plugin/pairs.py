@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cameras import Camera
+from .geometry import invert_transform, rotation_angle_deg
 from .rig import Rig
 
 # Rays within this elevation band (ego frame) define a camera's horizontal azimuth interval.
@@ -111,8 +112,6 @@ def rig_pair_geometry(rig: Rig, samples: int = 160) -> list[PairGeometry]:
 
 def relative_pose_errors(rig: Rig, reference: Rig) -> list[dict]:
     """Per adjacent pair: rotation (deg) and translation (m) error of the pair's relative pose vs `reference`."""
-    from .geometry import invert_transform, rotation_angle_deg
-
     rows = []
     for a, b in rig.pairs:
         rel = invert_transform(rig.camera(a).sensor_to_ego) @ rig.camera(b).sensor_to_ego

@@ -17,6 +17,7 @@ import collections
 import multiprocessing
 import os
 import re
+import signal
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -29,7 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import progress
-from ..rig import Rig
+from ..rig import Rig, load_frame_images
 from .backends import location_name
 from .creation import prepare_scene, remove_partial_files
 from .fingerprints import ConfigLike, config_document, fingerprint_parts
@@ -55,8 +56,6 @@ class PriorCompute:
 
     def __call__(self, frame_id: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Priors of all cameras of one frame."""
-        from ..rig import load_frame_images
-
         if self._builder is None:
             from ..stereo.pipeline import PriorBuilder
 
@@ -177,9 +176,7 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(compute: Compute, writer: SceneWriter, torch_n: int = 1) -> None:
-    import signal
-
-    from .lifetime import die_with_parent
+    from .lifetime import die_with_parent  # here: importing it arms the kill switch inside a fork server
 
     die_with_parent()  # the fork server; it dies with the main process in turn
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the main process stops the workers

@@ -11,6 +11,7 @@ whose creation was interrupted deleted and created afresh.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -280,8 +281,6 @@ def _find_damaged(
 
 def remove_partial_files(location: Location, scene: str) -> int:
     """Delete temporary files left by writes that a kill interrupted (local folders only)."""
-    import os
-
     path = local_path(location)
     if path is None:
         return 0
