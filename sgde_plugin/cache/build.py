@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import InputError
 from ..progress import progress
 from ..rig import Rig, load_frame_images
-from .backends import location_name
+from .backends import Location, location_name
 from .creation import prepare_scene, remove_partial_files
 from .fingerprints import ConfigLike, config_document, fingerprint_parts
 from .lock import writer_lock
@@ -301,7 +301,7 @@ def _note_warning(
 
 def build_cache(
     rig: Rig,
-    out: Any,
+    out: Location,
     config: ConfigLike = None,
     workers: int = 1,
     engine: str = "local",

@@ -10,7 +10,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import zarr
 from zarr.abc.store import Store
+from zarr.core.sync import sync
 
 from ..errors import InputError
 from ..rig import Frame, Rig
@@ -57,7 +59,7 @@ def frames_digest(frame_ids: Sequence[str], timestamps_us: Sequence[int]) -> str
     return digest({"ids": list(frame_ids), "timestamps_us": [int(t) for t in timestamps_us]})
 
 
-def file_signature(path: Any, edge: int = 16384) -> str:
+def file_signature(path: str | os.PathLike[str], edge: int = 16384) -> str:
     """Size and SHA-256 of the first and last `edge` bytes of a file (cheap, and differs between any two
     photographs); '-' when it cannot be read."""
     try:
@@ -80,12 +82,9 @@ def frame_source(frame: Frame) -> str:
     return digest({"frame": doc, "images": images})
 
 
-def scene_groups(store: Store, root: Any) -> tuple[dict[str, Any], dict[str, str]]:
+def scene_groups(store: Store, root: zarr.Group) -> tuple[dict[str, zarr.Group], dict[str, str]]:
     """{name: group} of a cache's scenes, and {name: problem} of the entries that do not open as one
     (a scene folder whose zarr.json is missing or unreadable)."""
-    import zarr
-    from zarr.core.sync import sync
-
     async def _names() -> list[str]:
         return [k async for k in store.list_dir("")]
 
@@ -108,12 +107,12 @@ def scene_groups(store: Store, root: Any) -> tuple[dict[str, Any], dict[str, str
     return groups, broken
 
 
-def shard_key(array: Any, frame_index: int) -> str:
+def shard_key(array: zarr.Array, frame_index: int) -> str:
     """Store key of the shard (all cameras) of one frame of a (frames, cameras, H, W) array."""
     return f"{array.path}/{array.metadata.encode_chunk_key((frame_index, 0, 0, 0))}"
 
 
-def open_arrays(group: Any) -> tuple[dict[str, Any], list[str]]:
+def open_arrays(group: zarr.Group) -> tuple[dict[str, zarr.Array], list[str]]:
     """The scene's arrays by name, and one problem per array that is missing or unreadable."""
     arrays, problems = {}, []
     for name in ARRAYS:
@@ -173,7 +172,7 @@ def scene_problems(attrs: Mapping[str, Any], arrays: Mapping[str, Any]) -> list[
     return problems
 
 
-def read_counts(valid_pixels: Any, n: int) -> tuple[np.ndarray, set[int]]:
+def read_counts(valid_pixels: zarr.Array, n: int) -> tuple[np.ndarray, set[int]]:
     """Valid-pixel counts (n, cameras) with -1 for frames not built, and the frames whose count chunk
     is unreadable (they count as not built)."""
     try:
@@ -203,7 +202,7 @@ def missing_shards(store: Store, arrays: Mapping[str, Any], counts: np.ndarray) 
     return out
 
 
-def read_checked(array: Any, index: tuple[int, ...]) -> tuple[np.ndarray | None, str | None]:
+def read_checked(array: zarr.Array, index: tuple[int, ...]) -> tuple[np.ndarray | None, str | None]:
     """One chunk read, or (None, what went wrong) when it does not decode."""
     try:
         return np.asarray(array[index]), None

@@ -27,7 +27,7 @@ scene), `writer` (frame writes). Their names are re-exported here.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -341,7 +341,7 @@ class PriorCache:
         return f"PriorCache({location_name(self.location)!r}, scenes={self.scenes()}, fingerprint={self.fingerprint})"
 
 
-def check_size(size: Any) -> tuple[int, int] | None:
+def check_size(size: Sequence[int] | None) -> tuple[int, int] | None:
     """A requested (height, width) as two positive ints (None stays None); ValueError otherwise."""
     if size is None:
         return None

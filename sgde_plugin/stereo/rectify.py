@@ -57,12 +57,6 @@ class RectifiedPair:
         """`left|right`."""
         return f"{self.left.name}|{self.right.name}"
 
-    def depth_from_disparity(self, disparity: np.ndarray) -> np.ndarray:
-        """Rectified z (metres) of a disparity map; 0 where the disparity is not positive."""
-        d = np.asarray(disparity, dtype=np.float32)
-        fb = np.float32(self.focal_px * self.baseline_m)
-        return np.where(d > 0, fb / np.where(d > 0, d, 1), 0).astype(np.float32)
-
 
 def rectified_rotation(left: Camera, right: Camera) -> np.ndarray:
     """Rectified rotation in ego coordinates: x along the baseline, z the mean view minus its x part."""
