@@ -42,6 +42,7 @@ class MatchConfig:
     sigma_floor_px: float = 0.1
     loftr_sigma_px: float = 0.5
     fisheye_views: bool = True
+    pinhole_views: bool = True
     cross_time: bool = True
     seed: int = 0
 
@@ -260,6 +261,9 @@ def detect_features(
         views = {}
         if cfg.fisheye_views and not isinstance(cam.intrinsics, Pinhole):
             views = {o: v for o in neighbours if (v := overlap_view(cam, grids[(name, o)])) is not None}
+        elif cfg.pinhole_views and isinstance(cam.intrinsics, Pinhole):
+            views = {o: v for o in neighbours
+                     if (v := overlap_view(cam, grids[(name, o)], other=cams[o], crop=True)) is not None}
         static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
         raw = [o for o in neighbours if o not in views]
         det = np.zeros((cam.height, cam.width), np.uint8)
