@@ -67,25 +67,43 @@ class SELayer(nn.Module):
         return x * torch.sigmoid(self.conv_expand(self.act(self.conv_reduce(x_se))))
 
 
-def _conv_bn_relu(cin: int, cout: int, kernel: int, dilation: int = 1) -> nn.Sequential:
-    pad = 0 if kernel == 1 else dilation
-    return nn.Sequential(
-        nn.Conv2d(cin, cout, kernel, padding=pad, dilation=dilation, bias=False),
-        nn.BatchNorm2d(cout),
-        nn.ReLU(inplace=True),
-    )
+class _AtrousBranch(nn.Module):
+    """Convolution (no bias) -> BatchNorm -> ReLU; attribute names as BEVDepth's ``_ASPPModule``."""
+
+    def __init__(self, cin: int, cout: int, kernel: int, dilation: int) -> None:
+        super().__init__()
+        pad = 0 if kernel == 1 else dilation
+        self.atrous_conv = nn.Conv2d(cin, cout, kernel, padding=pad, dilation=dilation, bias=False)
+        self.bn = nn.BatchNorm2d(cout)
+        self.relu = nn.ReLU()
+
+    def forward(self, x: Tensor) -> Tensor:
+        """[M, cin, h, w] -> [M, cout, h, w]."""
+        return self.relu(self.bn(self.atrous_conv(x)))
 
 
 class ASPP(nn.Module):
-    """Atrous spatial pyramid pooling (dilations 1, 6, 12, 18 plus a global branch), as in BEVDepth."""
+    """Atrous spatial pyramid pooling (dilations 1, 6, 12, 18 plus a global branch), as in BEVDepth.
 
-    def __init__(self, in_channels: int, mid_channels: int, dilations: tuple[int, ...] = (1, 6, 12, 18)) -> None:
+    State-dict keys are BEVDepth's (``aspp1..4.atrous_conv``, ``global_avg_pool.1``/``.2``, ``conv1``,
+    ``bn1``), so its checkpoints load; convolutions start Kaiming-normal like BEVDepth's.
+    """
+
+    def __init__(self, in_channels: int, mid_channels: int) -> None:
         super().__init__()
-        self.branches = nn.ModuleList(
-            [_conv_bn_relu(in_channels, mid_channels, 1 if d == 1 else 3, d) for d in dilations]
+        self.aspp1 = _AtrousBranch(in_channels, mid_channels, 1, 1)
+        self.aspp2 = _AtrousBranch(in_channels, mid_channels, 3, 6)
+        self.aspp3 = _AtrousBranch(in_channels, mid_channels, 3, 12)
+        self.aspp4 = _AtrousBranch(in_channels, mid_channels, 3, 18)
+        self.global_avg_pool = nn.Sequential(
+            nn.AdaptiveAvgPool2d((1, 1)),
+            nn.Conv2d(in_channels, mid_channels, 1, bias=False),
+            nn.BatchNorm2d(mid_channels),
+            nn.ReLU(),
         )
-        self.global_branch = _conv_bn_relu(in_channels, mid_channels, 1)
-        self.project = _conv_bn_relu(mid_channels * (len(dilations) + 1), mid_channels, 1)
+        self.conv1 = nn.Conv2d(5 * mid_channels, mid_channels, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(mid_channels)
+        self.relu = nn.ReLU()
         self.dropout = nn.Dropout(0.5)
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
@@ -93,8 +111,7 @@ class ASPP(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """[M, in, h, w] -> [M, mid, h, w]."""
-        outs = [branch(x) for branch in self.branches]
-        pooled = self.global_branch(x.mean(dim=(2, 3), keepdim=True))
-        # a 1x1 map upsampled (bilinear, align_corners) is a constant map: broadcast it instead
-        outs.append(pooled.expand_as(outs[0]))
-        return self.dropout(self.project(torch.cat(outs, dim=1)))
+        branches = [self.aspp1(x), self.aspp2(x), self.aspp3(x), self.aspp4(x)]
+        # the pooled 1x1 map upsampled (bilinear, align_corners) is a constant map: broadcast it instead
+        branches.append(self.global_avg_pool(x).expand_as(branches[0]))
+        return self.dropout(self.relu(self.bn1(self.conv1(torch.cat(branches, dim=1)))))

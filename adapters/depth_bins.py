@@ -38,6 +38,8 @@ def depth_bce_loss(labels: Tensor, depth_probs: Tensor) -> Tensor:
 
     ``labels`` [M, D] from ``depth_bin_labels``; ``depth_probs`` [B*N, D, h, w] (softmax over D).
     Cells whose label row is all zero contribute nothing; with no foreground at all the loss is 0.
+    Safe under fp16 / bf16 autocast, as BEVDepth does it: the BCE runs with autocast off, in float32
+    (CUDA autocast refuses ``binary_cross_entropy`` otherwise).
     """
     n_bins = labels.shape[1]
     if depth_probs.shape[1] != n_bins:
@@ -46,5 +48,6 @@ def depth_bce_loss(labels: Tensor, depth_probs: Tensor) -> Tensor:
     if preds.shape[0] != labels.shape[0]:
         raise ValueError(f"{preds.shape[0]} predicted cells but {labels.shape[0]} labelled cells")
     fg = labels.max(dim=1).values > 0
-    bce = F.binary_cross_entropy(preds[fg].float(), labels[fg].float(), reduction="none").sum()
+    with torch.autocast(device_type=preds.device.type, enabled=False):
+        bce = F.binary_cross_entropy(preds[fg].float(), labels[fg].float(), reduction="none").sum()
     return bce / fg.sum().clamp_min(1)

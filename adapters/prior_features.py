@@ -27,8 +27,12 @@ class PriorFeatureEncoder(nn.Module):
     """Metric prior at image size -> features at the feature stride, to be added to a feature map.
 
     Steps: min-pool ignoring zeros to the feature stride, ``PriorEncoding`` (depth / max_depth in
-    [0, 1], 0 = none, plus a validity channel), then two 1x1 convolutions. With ``zero_init`` the
-    last convolution starts at zero, so adding the output changes nothing until training moves it.
+    [0, 1], 0 = none, plus a validity channel), two 1x1 convolutions, then times the cell's validity:
+    a cell without prior gets exactly 0, so an all-zero prior adds exactly nothing (the same as no
+    prior, in torch and in an exported graph). With ``zero_init`` the last convolution starts at
+    zero, so adding the output changes nothing until training moves it. Pooling and normalisation
+    run in the prior's dtype, the convolutions in the weights' dtype (a ``.half()`` net takes a
+    float32 prior).
     """
 
     def __init__(
@@ -61,5 +65,7 @@ class PriorFeatureEncoder(nn.Module):
         return min_pool_nonzero(prior, self.downsample)
 
     def forward(self, prior: Tensor) -> Tensor:
-        """Prior [B, N, H, W] (or [B*N, 1, H, W]) in metres -> features [B*N, out, H/s, W/s]."""
-        return self.net(self.encoding(self.pooled(prior)))
+        """Prior [B, N, H, W] (or [B*N, 1, H, W]) in metres -> features [B*N, out, H/s, W/s], 0 where none."""
+        pooled = self.pooled(prior)
+        feats = self.net(self.encoding(pooled).to(self.net[0].weight.dtype))
+        return feats * (pooled > 0).to(feats.dtype)

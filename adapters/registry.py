@@ -15,7 +15,7 @@ from typing import Any
 
 REGISTERED_NAMES = {
     "SGDEPriorDepthNet": ("sgde_plugin.adapters.bevdepth", "PriorDepthNet"),
-    "SGDEPriorInjector": ("sgde_plugin.adapters.bevdepth", "PriorInjector"),
+    "SGDEPriorInjector": ("sgde_plugin.adapters.registry", "inject_prior_from_config"),
     "SGDEDepthToVoxelProposals": ("sgde_plugin.adapters.voxformer", "DepthToVoxelProposals"),
 }
 
@@ -38,6 +38,18 @@ def _models_registry() -> Any | None:
         return importlib.import_module("mmdet3d.registry").MODELS
     except (ImportError, AttributeError):
         return None
+
+
+def inject_prior_from_config(depth_net: Any, **kwargs: Any) -> Any:
+    """``inject_prior`` for configs: ``depth_net`` may be a module or a config dict built by mmdet3d's MODELS."""
+    from .bevdepth import inject_prior
+
+    if isinstance(depth_net, dict):
+        registry = _models_registry()
+        if registry is None:
+            raise ValueError("depth_net is a config dict but mmdet3d's MODELS registry is not available")
+        depth_net = registry.build(depth_net)
+    return inject_prior(depth_net, **kwargs)
 
 
 def register_mmdet3d() -> list[str]:

@@ -1,56 +1,53 @@
-"""VoxFormer-style stage 1: per-camera depth (fused with the SGDE prior) -> occupancy -> query proposals.
+"""VoxFormer-style stage 1: rig depth (fused with the SGDE prior) -> occupancy -> query proposals.
 
-VoxFormer lifts a depth map to a pseudo point cloud, voxelises it (256 x 256 x 32 at 0.2 m over
-[0, 51.2] x [-25.6, 25.6] x [-2, 4.4] m) and keeps the occupied voxels at half resolution as the
-queries of its second stage. ``DepthToVoxelProposals`` does this for a whole rig in batched torch,
-for any ``sgde_plugin.cameras`` model (pinholes and the virtual views of fisheyes), after replacing
-the predicted depth by the prior wherever the prior is confident.
+What VoxFormer does (NVlabs/VoxFormer, SemanticKITTI): a stereo depth map becomes a pseudo point
+cloud in the LiDAR frame (``depth2lidar.py``), accumulated over 10 sweeps with the LiDAR poses, and
+is voxelised into a 256 x 256 x 32 occupancy at 0.2 m over [0, 51.2] x [-25.6, 25.6] x [-2, 4.4] m
+(``lidar2voxel.py``, saved packed as ``.pseudo``). A trained query-proposal network (LMSCNet) turns
+that occupancy into 128 x 128 x 16 query proposals (saved as ``.query*``) for the stage-2 head.
+
+``DepthToVoxelProposals`` computes, for a whole rig in batched torch and for any
+``sgde_plugin.cameras`` model:
+
+- ``occupancy``: VoxFormer's stage-1 voxels, a drop-in for ``.pseudo`` (identical to VoxFormer's
+  own on a constructed KITTI scene, ``tests/test_adapters_voxformer.py``), from one sweep or, with
+  ``past_points`` from ``accumulate_sweeps``, from several;
+- ``coarse_occupancy``: the occupancy max-pooled to the query resolution. A geometric stand-in,
+  NOT VoxFormer's query proposals: stage-2 weights trained on LMSCNet's proposals would get
+  another query set;
+- ``proposals``: only when a query-proposal network is given (``query_net``, e.g. an LMSCNet
+  checkpoint loaded with ``load_query_net``): its arg-max, as VoxFormer's stage 1 writes them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from sgde_plugin.cameras import CameraModel, pixel_grid
+from sgde_plugin.errors import InputError
+from sgde_plugin.geometry import invert_transform
 from sgde_plugin.nn import PriorL1Loss
 
+from .voxel_grids import (
+    GRID_PRESETS,
+    OCC3D_NUSCENES_GRID,
+    VOXFORMER_GRID,
+    VoxelGrid,
+    check_frames,
+    voxelize,
+)
 
-@dataclass(frozen=True)
-class VoxelGrid:
-    """An axis-aligned voxel grid in the ego frame: lower corner (m), voxel edge (m), shape (X, Y, Z)."""
-
-    origin: tuple[float, float, float]
-    voxel_size: float
-    shape: tuple[int, int, int]
-
-    @property
-    def upper(self) -> tuple[float, float, float]:
-        """Upper corner of the grid, metres."""
-        return tuple(o + self.voxel_size * n for o, n in zip(self.origin, self.shape))
-
-    @property
-    def num_voxels(self) -> int:
-        """X * Y * Z."""
-        x, y, z = self.shape
-        return x * y * z
-
-    def voxel_index(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """Ego points [..., 3] -> integer voxel indices [..., 3] (long) and inside-grid flags [...]."""
-        origin = torch.as_tensor(self.origin, dtype=points.dtype, device=points.device)
-        idx = torch.floor((points - origin) / self.voxel_size).long()
-        size = torch.as_tensor(self.shape, device=points.device)
-        inside = ((idx >= 0) & (idx < size)).all(dim=-1)
-        return idx, inside
-
-
-VOXFORMER_GRID = VoxelGrid(origin=(0.0, -25.6, -2.0), voxel_size=0.2, shape=(256, 256, 32))
-OCC3D_NUSCENES_GRID = VoxelGrid(origin=(-40.0, -40.0, -1.0), voxel_size=0.4, shape=(200, 200, 16))
-GRID_PRESETS = {"voxformer": VOXFORMER_GRID, "occ3d-nuscenes": OCC3D_NUSCENES_GRID}
+__all__ = [
+    "GRID_PRESETS", "OCC3D_NUSCENES_GRID", "VOXFORMER_GRID", "VoxelGrid", "DepthToVoxelProposals",
+    "RigDepthToVoxelProposals", "accumulate_sweeps", "fuse_depth_with_prior", "load_query_net",
+    "poses_in_frame", "proposal_depth_loss", "proposal_indices", "query_proposals",
+]
 
 
 def fuse_depth_with_prior(
@@ -65,14 +62,78 @@ def fuse_depth_with_prior(
     return torch.where(use, prior, depth)
 
 
+def poses_in_frame(sensor_to_ego: np.ndarray, frame_to_ego: np.ndarray) -> np.ndarray:
+    """Camera poses [..., 4, 4] re-expressed in another frame (e.g. the LiDAR's): inv(frame_to_ego) @ sensor_to_ego."""
+    return invert_transform(np.asarray(frame_to_ego, dtype=np.float64)) @ np.asarray(sensor_to_ego, dtype=np.float64)
+
+
+def accumulate_sweeps(
+    points: Sequence[Tensor], valid: Sequence[Tensor], frame_to_world: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Points of several sweeps in the frame of sweep 0, as VoxFormer's multi-sweep ``lidar2voxel.py``.
+
+    ``points[s]``: [B, P_s, 3] in sweep s's own frame (LiDAR or ego), ``valid[s]``: [B, P_s];
+    ``frame_to_world``: [S, 4, 4] or [B, S, 4, 4] poses of that frame per sweep (for KITTI the LiDAR
+    poses of ``sgde_plugin.readers.kitti.read_kitti_poses``). Returns [B, sum P_s, 3] and [B, sum P_s].
+    """
+    if frame_to_world.dim() == 3:
+        frame_to_world = frame_to_world.unsqueeze(0)
+    world_to_current = torch.linalg.inv(frame_to_world[:, 0].to(torch.float64))
+    out_p, out_v = [], []
+    for s, (p, v) in enumerate(zip(points, valid)):
+        rel = (world_to_current @ frame_to_world[:, s].to(torch.float64)).to(p.dtype)  # [B or 1, 4, 4]
+        out_p.append(p @ rel[:, :3, :3].transpose(-1, -2) + rel[:, None, :3, 3])
+        out_v.append(v)
+    return torch.cat(out_p, dim=1), torch.cat(out_v, dim=1)
+
+
+def query_proposals(occupancy: Tensor, query_net: nn.Module) -> Tensor:
+    """Occupancy [B, X, Y, Z] -> {0, 1} proposals [B, X/2, Y/2, Z/2] from an LMSCNet-style network.
+
+    VoxFormer's LMSCNet takes the occupancy as [B, Z, X, Y] (height as channels) and returns class
+    logits [B, C, X/2, Y/2, Z/2]; a voxel is proposed where the arg-max class is not 0 (empty).
+    """
+    logits = query_net(occupancy.permute(0, 3, 1, 2))
+    b, x, y, z = occupancy.shape
+    if logits.dim() != 5 or tuple(logits.shape[2:]) != (x // 2, y // 2, z // 2):
+        raise ValueError(f"the query-proposal network returned {tuple(logits.shape)}, expected "
+                         f"[B, C, {x // 2}, {y // 2}, {z // 2}] class logits")
+    return (logits.argmax(dim=1) > 0).to(occupancy.dtype)
+
+
+def load_query_net(path: str | Path, module: nn.Module | None = None) -> nn.Module:
+    """A query-proposal network from a local file: TorchScript, or a state dict into ``module``.
+
+    A state dict may sit under a ``"state_dict"`` key (mmcv checkpoints). Nothing is downloaded.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, None, "no such checkpoint file")
+    try:
+        if module is None:
+            net = torch.jit.load(str(path), map_location="cpu")
+        else:
+            state = torch.load(str(path), map_location="cpu", weights_only=True)
+            module.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)
+            net = module
+    except (RuntimeError, ValueError, KeyError) as exc:
+        raise InputError(path, None, f"not a usable query-proposal checkpoint: {str(exc).splitlines()[0]}") from None
+    return net.eval()
+
+
 class DepthToVoxelProposals(nn.Module):
-    """Rig depth [B, N, H, W] -> pseudo points (ego), occupancy [B, X, Y, Z], proposals at 1/stride.
+    """Rig depth [B, N, H, W] -> pseudo points, ``occupancy`` [B, X, Y, Z], coarse occupancy or proposals.
 
     Args:
-        grid: the voxel grid (``VOXFORMER_GRID`` by default, or ``OCC3D_NUSCENES_GRID``).
-        proposal_stride: resolution reduction of the proposals (VoxFormer: 2).
+        grid: the voxel grid (``VOXFORMER_GRID``, LiDAR frame, by default; or ``OCC3D_NUSCENES_GRID``).
+        proposal_stride: query resolution reduction (VoxFormer: 2).
         confidence_threshold: prior pixels with a lower confidence keep the predicted depth.
         max_depth: depths beyond this (in each camera's convention) are dropped; None keeps all.
+        rig_frame: the frame the ``sensor_to_ego`` poses given to ``forward`` map into: ``"ego"`` (the
+            project's convention, the default) or ``"lidar"``; a grid in another frame is refused, so
+            ``VOXFORMER_GRID`` needs poses re-expressed in the LiDAR frame (``poses_in_frame``, or
+            ``sgde_plugin.readers.kitti.kitti_camera``) and ``rig_frame="lidar"``.
+        query_net: an LMSCNet-style query-proposal network; without one there is no ``proposals``.
     """
 
     def __init__(
@@ -81,19 +142,22 @@ class DepthToVoxelProposals(nn.Module):
         proposal_stride: int = 2,
         confidence_threshold: float = 0.5,
         max_depth: float | None = None,
+        rig_frame: str = "ego",
+        query_net: nn.Module | None = None,
     ) -> None:
         super().__init__()
-        if any(n % proposal_stride for n in grid.shape):
-            raise ValueError(f"grid shape {grid.shape} is not divisible by proposal_stride {proposal_stride}")
+        grid.coarsened(proposal_stride)  # raises when the shape is not divisible
+        check_frames(grid, rig_frame)
         self.grid = grid
         self.proposal_stride = int(proposal_stride)
         self.confidence_threshold = float(confidence_threshold)
         self.max_depth = max_depth
+        self.query_net = query_net
 
     def points(
         self, depth: Tensor, cameras: Sequence[CameraModel], sensor_to_ego: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """Depth [B, N, H, W] -> ego points [B, N, H, W, 3] and validity [B, N, H, W]."""
+        """Depth [B, N, H, W] -> points [B, N, H, W, 3] in the grid's frame and validity [B, N, H, W]."""
         b, n, h, w = depth.shape
         if len(cameras) != n:
             raise ValueError(f"{len(cameras)} cameras for {n} depth maps")
@@ -111,23 +175,14 @@ class DepthToVoxelProposals(nn.Module):
         ok = torch.stack(valid, dim=1)
         if self.max_depth is not None:
             ok = ok & (depth <= self.max_depth)
-        rot = sensor_to_ego[:, :, None, None, :3, :3].to(depth.dtype)
-        trans = sensor_to_ego[:, :, None, None, :3, 3].to(depth.dtype)
+        pose = sensor_to_ego.to(device=depth.device, dtype=depth.dtype)
+        rot, trans = pose[:, :, None, None, :3, :3], pose[:, :, None, None, :3, 3]
         ego = (rot @ cam_pts.unsqueeze(-1)).squeeze(-1) + trans
         return ego, ok
 
     def voxelize(self, points: Tensor, valid: Tensor) -> Tensor:
-        """Ego points [B, P, 3] + validity [B, P] -> point counts per voxel [B, X, Y, Z]."""
-        b = points.shape[0]
-        x, y, z = self.grid.shape
-        idx, inside = self.grid.voxel_index(points)
-        keep = valid & inside
-        flat = (idx[..., 0] * y + idx[..., 1]) * z + idx[..., 2]
-        # points outside the grid go to one extra "dump" cell that is cut off afterwards
-        flat = torch.where(keep, flat, torch.full_like(flat, self.grid.num_voxels))
-        counts = torch.zeros(b, self.grid.num_voxels + 1, dtype=points.dtype, device=points.device)
-        counts = counts.scatter_add(1, flat, keep.to(points.dtype))
-        return counts[:, : self.grid.num_voxels].reshape(b, x, y, z)
+        """Points [B, P, 3] in the grid's frame + validity [B, P] -> point counts per voxel [B, X, Y, Z]."""
+        return voxelize(points, valid, self.grid)
 
     def forward(
         self,
@@ -136,22 +191,32 @@ class DepthToVoxelProposals(nn.Module):
         sensor_to_ego: Tensor,
         prior: Tensor | None = None,
         confidence: Tensor | None = None,
+        past_points: tuple[Tensor, Tensor] | None = None,
     ) -> dict[str, Tensor]:
         """Depth (+ prior, confidence) [B, N, H, W] and the rig -> dict of tensors.
 
         ``cameras``: one model per camera (resized to the depth map when sizes differ);
-        ``sensor_to_ego``: [B, N, 4, 4] or [N, 4, 4]. Returns ``depth`` (fused, [B, N, H, W]),
-        ``points`` [B, N*H*W, 3] and ``valid`` [B, N*H*W], ``occupancy`` [B, X, Y, Z] in {0, 1}
-        and ``proposals`` [B, X/s, Y/s, Z/s] in {0, 1} (a coarse voxel holding any occupied one).
+        ``sensor_to_ego``: [B, N, 4, 4] or [N, 4, 4] into the grid's frame; ``past_points``: (points
+        [B, P, 3], valid [B, P]) of earlier sweeps already in this frame (``accumulate_sweeps``).
+        Returns ``depth`` (fused), ``points`` [B, N*H*W, 3], ``valid`` [B, N*H*W], ``occupancy``
+        [B, X, Y, Z] in {0, 1}, ``coarse_occupancy`` [B, X/s, Y/s, Z/s] (a coarse voxel holding any
+        occupied one) and, with a ``query_net``, ``proposals`` [B, X/2, Y/2, Z/2].
         """
         fused = fuse_depth_with_prior(depth, prior, confidence, self.confidence_threshold)
         ego, ok = self.points(fused, cameras, sensor_to_ego)
         b = depth.shape[0]
         points, valid = ego.reshape(b, -1, 3), ok.reshape(b, -1)
-        occupancy = (self.voxelize(points, valid) > 0).to(depth.dtype)
+        all_points, all_valid = points, valid
+        if past_points is not None:
+            all_points = torch.cat([points, past_points[0].to(points.dtype)], dim=1)
+            all_valid = torch.cat([valid, past_points[1]], dim=1)
+        occupancy = (self.voxelize(all_points, all_valid) > 0).to(depth.dtype)
         s = self.proposal_stride
-        proposals = F.max_pool3d(occupancy.unsqueeze(1), kernel_size=s, stride=s).squeeze(1)
-        return {"depth": fused, "points": points, "valid": valid, "occupancy": occupancy, "proposals": proposals}
+        coarse = F.max_pool3d(occupancy.unsqueeze(1), kernel_size=s, stride=s).squeeze(1)
+        out = {"depth": fused, "points": points, "valid": valid, "occupancy": occupancy, "coarse_occupancy": coarse}
+        if self.query_net is not None:
+            out["proposals"] = query_proposals(occupancy, self.query_net)
+        return out
 
 
 def proposal_indices(proposals: Tensor) -> list[Tensor]:
@@ -165,7 +230,7 @@ def proposal_depth_loss(
     prior: Tensor | None = None,
     prior_loss: nn.Module | None = None,
 ) -> Tensor:
-    """Depth loss of the proposal branch: mean L1 to ground truth + the SGDE prior loss.
+    """Depth loss of the stage-1 depth branch: mean L1 to ground truth + the SGDE prior loss.
 
     Maps are [B, N, H, W] metres, 0 = no value (pixels without a target contribute nothing).
     ``prior_loss`` is any ``sgde_plugin.nn`` prior loss (default ``PriorL1Loss``, lambda = 0.005).
@@ -182,7 +247,8 @@ def proposal_depth_loss(
 class RigDepthToVoxelProposals(nn.Module):
     """``DepthToVoxelProposals`` with the rig's camera models fixed: tensors in, tensors out (exportable).
 
-    ``forward(depth, sensor_to_ego, prior, confidence)`` -> (occupancy, proposals).
+    ``forward(depth, sensor_to_ego, prior, confidence)`` -> (occupancy, coarse): ``coarse`` is the
+    query-proposal network's ``proposals`` when the module has one, else ``coarse_occupancy``.
     """
 
     def __init__(self, proposals: DepthToVoxelProposals, cameras: Sequence[CameraModel]) -> None:
@@ -191,6 +257,6 @@ class RigDepthToVoxelProposals(nn.Module):
         self.cameras = list(cameras)
 
     def forward(self, depth: Tensor, sensor_to_ego: Tensor, prior: Tensor, confidence: Tensor) -> tuple[Tensor, Tensor]:
-        """[B, N, H, W] maps and [B, N, 4, 4] poses -> occupancy [B, X, Y, Z], proposals [B, X/s, Y/s, Z/s]."""
+        """[B, N, H, W] maps and [B, N, 4, 4] poses -> occupancy [B, X, Y, Z], coarse [B, X/s, Y/s, Z/s]."""
         out = self.proposals(depth, self.cameras, sensor_to_ego, prior, confidence)
-        return out["occupancy"], out["proposals"]
+        return out["occupancy"], out.get("proposals", out["coarse_occupancy"])

@@ -8,12 +8,12 @@ Inputs and outputs (stable names; B = batch, dynamic; N = cameras, dynamic for `
     depth     float32 [B, 1, H, W]  metric depth in metres (output)
 
 ``bevdepth``  (feature size h x w fixed at export; image size = 16 h x 16 w)
-    features        float32 [B*N, C_in, h, w]  image features at stride 16
-    prior           float32 [B, N, 16h, 16w]   metric prior at the augmented image size, 0 = none
-    intrin_mats     float32 [B, N, 4, 4]       camera intrinsics (key sweep)
-    ida_mats        float32 [B, N, 4, 4]       image-augmentation matrices
-    sensor2ego_mats float32 [B, N, 4, 4]       camera-to-ego transforms
-    bda_mat         float32 [B, 4, 4]          BEV-augmentation matrix
+    features        float32 [B*N, C_in, h, w]  image features at stride 16 (one sweep)
+    prior           float32 [B, N, 16h, 16w]   metric prior of that sweep at the augmented image size, 0 = none
+    intrin_mats     float32 [B, S, N, 4, 4]    camera intrinsics, BEVDepth's mats_dict layout (S >= 1
+    ida_mats        float32 [B, S, N, 4, 4]    image-augmentation matrices      sweeps; like BEVDepth's
+    sensor2ego_mats float32 [B, S, N, 4, 4]    camera-to-ego transforms         DepthNet the graph reads
+    bda_mat         float32 [B, 4, 4]          BEV-augmentation matrix          the key sweep, index 0)
     depth_logits    float32 [B*N, D, h, w]     depth-bin logits (softmax over D gives probabilities)
     context         float32 [B*N, C_ctx, h, w] context features
 """
@@ -42,6 +42,7 @@ BEVDEPTH_OUTPUTS = ("depth_logits", "context")
 R18_DEFAULT_SIZE = (384, 640)
 BEVDEPTH_DEFAULT_SIZE = (256, 704)  # image size; features at stride 16: 16 x 44
 BEVDEPTH_DEFAULTS = {"in_channels": 512, "mid_channels": 512, "context_channels": 80, "depth_channels": 112}
+DEFORM_OPSET = 19  # the first opset with DeformConv
 NUSCENES_YAWS_DEG = (0.0, -55.0, -110.0, 180.0, 110.0, 55.0)
 
 
@@ -217,8 +218,12 @@ def generated_image_and_prior(batch: int, height: int, width: int, cams: int = 1
     return torch.stack(frames), torch.stack(priors)
 
 
-def nuscenes_like_mats(batch: int, cams: int, image_size: tuple[int, int]) -> dict[str, Tensor]:
-    """Camera matrices of a surround rig (nuScenes-like yaws, 1.6 m high), [B, N, 4, 4] and bda [B, 4, 4]."""
+def nuscenes_like_mats(batch: int, cams: int, image_size: tuple[int, int], sweeps: int = 1) -> dict[str, Tensor]:
+    """Camera matrices of a surround rig (nuScenes-like yaws, 1.6 m high) in BEVDepth's layout.
+
+    ``intrin_mats``, ``ida_mats``, ``sensor2ego_mats`` [B, sweeps, N, 4, 4] (every sweep alike) and
+    ``bda_mat`` [B, 4, 4].
+    """
     from sgde_plugin.geometry import camera_mount
 
     h, w = image_size
@@ -234,9 +239,9 @@ def nuscenes_like_mats(batch: int, cams: int, image_size: tuple[int, int]) -> di
     ida[0, 0] = ida[1, 1] = 0.44
     ida[1, 3] = -140.0
     return {
-        "intrin_mats": K.expand(batch, cams, 4, 4).clone(),
-        "ida_mats": ida.expand(batch, cams, 4, 4).clone(),
-        "sensor2ego_mats": s2e.expand(batch, cams, 4, 4).clone(),
+        "intrin_mats": K.expand(batch, sweeps, cams, 4, 4).clone(),
+        "ida_mats": ida.expand(batch, sweeps, cams, 4, 4).clone(),
+        "sensor2ego_mats": s2e.expand(batch, sweeps, cams, 4, 4).clone(),
         "bda_mat": torch.eye(4).expand(batch, 4, 4).clone(),
     }
 
@@ -305,26 +310,48 @@ def build_r18(checkpoint: str | Path | None = None, image_size: tuple[int, int] 
                       {"image_size": (h, w)})
 
 
+def _config_from_state(state: dict[str, Tensor] | None) -> dict[str, Any]:
+    """PriorDepthNet sizes read off a BEVDepth-style DepthNet state dict (empty when they cannot be)."""
+    if not state or "reduce_conv.0.weight" not in state or "context_conv.weight" not in state:
+        return {}
+    deformable = "depth_conv.4.conv_offset.weight" in state
+    last = state.get(f"depth_conv.{5 if deformable else 4}.weight")
+    config = {"in_channels": int(state["reduce_conv.0.weight"].shape[1]),
+              "mid_channels": int(state["reduce_conv.0.weight"].shape[0]),
+              "context_channels": int(state["context_conv.weight"].shape[0]), "deformable": deformable}
+    if last is not None:
+        config["depth_channels"] = int(last.shape[0])
+    return config
+
+
 def build_bevdepth(
     checkpoint: str | Path | None = None,
     image_size: tuple[int, int] = BEVDEPTH_DEFAULT_SIZE,
     cams: int = 6,
     **overrides: Any,
 ) -> ExportSpec:
-    """The BEVDepth-style depth branch (``PriorDepthNet``) ready for export; ``overrides`` go to its constructor."""
+    """The BEVDepth-style depth branch (``PriorDepthNet``) ready for export; ``overrides`` go to its constructor.
+
+    A checkpoint may be this project's (with a ``config``) or BEVDepth's (a DepthNet state dict or a
+    whole model's, ``...depth_net.*``): channels and the deformable convolution are then read off it.
+    """
     from sgde_plugin.adapters import PriorDepthNet
+    from sgde_plugin.adapters.bevdepth import _depth_net_part
 
     state, info = load_checkpoint(checkpoint) if checkpoint is not None else (None, {})
-    config = BEVDEPTH_DEFAULTS | dict(info.get("config", {})) | overrides
+    if state is not None:
+        state = dict(_depth_net_part(state))
+    config = BEVDEPTH_DEFAULTS | _config_from_state(state) | dict(info.get("config", {})) | overrides
     config["use_prior"] = True
     try:
         net = PriorDepthNet(**config)
     except (TypeError, ValueError) as exc:
         raise InputError(checkpoint, "config", str(exc)) from None
-    if config.get("deformable"):
-        raise InputError(checkpoint, "config.deformable", "deformable convolution has no ONNX export")
     if state is not None:
-        _load_into(net, state, checkpoint)
+        try:
+            net.load_state_dict(state)  # BEVDepth key names; strict, one-line refusal
+        except InputError as exc:
+            raise InputError(checkpoint, exc.key, exc.problem) from None
     net.eval()
     h, w = image_size
     s = net.downsample
@@ -344,7 +371,7 @@ def build_bevdepth(
         prior = _sparse_prior((batch, cams, h, w), g, net.d_bound[1], fill=0.05)
         intr, ida, s2e, bda = mats_tuple(batch)
         intr = intr.clone()
-        intr[..., :2, :3] *= 1.0 + 0.05 * torch.randn(batch, cams, 1, 1, generator=g)
+        intr[..., :2, :3] *= 1.0 + 0.05 * torch.randn(batch, 1, cams, 1, 1, generator=g)
         return feats, prior, intr, ida, s2e, bda
 
     def synthetic_inputs(batch: int) -> tuple[str, tuple[Tensor, ...]]:
@@ -367,14 +394,16 @@ def build_bevdepth(
         "sgde.inputs": json.dumps({
             "features": f"float32 [B*N,{cin},{fh},{fw}] image features at stride {s}",
             "prior": f"float32 [B,N,{h},{w}] metres at the augmented image size, 0 = no prior",
-            "intrin_mats": "float32 [B,N,4,4]", "ida_mats": "float32 [B,N,4,4]",
-            "sensor2ego_mats": "float32 [B,N,4,4] camera -> ego", "bda_mat": "float32 [B,4,4]",
+            "intrin_mats": "float32 [B,S,N,4,4] (BEVDepth mats_dict; sweep 0 is used)",
+            "ida_mats": "float32 [B,S,N,4,4]", "sensor2ego_mats": "float32 [B,S,N,4,4] camera -> ego",
+            "bda_mat": "float32 [B,4,4]",
         }),
         "sgde.outputs": json.dumps({
             "depth_logits": f"float32 [B*N,{net.depth_channels},{fh},{fw}] logits of the depth bins",
             "context": f"float32 [B*N,{net.context_channels},{fh},{fw}]",
         }),
-        "sgde.input_layout": "NCHW features with batch and cameras folded (b * N + n); matrices per camera",
+        "sgde.input_layout": ("NCHW features with batch and cameras folded (b * N + n); matrices as BEVDepth's "
+                              "mats_dict [B, sweeps, N, 4, 4]; one sweep per run"),
         "sgde.depth_range": json.dumps(list(net.d_bound)),
         "sgde.depth_bins": json.dumps({"d_bound": list(net.d_bound), "bins": net.depth_channels,
                                        "bin_k": "[start + k*step, start + (k+1)*step) metres"}),
@@ -385,12 +414,15 @@ def build_bevdepth(
     }
     axes = {
         "features": {0: "batch_x_cams"}, "prior": {0: "batch", 1: "cams"},
-        "intrin_mats": {0: "batch", 1: "cams"}, "ida_mats": {0: "batch", 1: "cams"},
-        "sensor2ego_mats": {0: "batch", 1: "cams"}, "bda_mat": {0: "batch"},
+        "intrin_mats": {0: "batch", 1: "sweeps", 2: "cams"}, "ida_mats": {0: "batch", 1: "sweeps", 2: "cams"},
+        "sensor2ego_mats": {0: "batch", 1: "sweeps", 2: "cams"}, "bda_mat": {0: "batch"},
         "depth_logits": {0: "batch_x_cams"}, "context": {0: "batch_x_cams"},
     }
+    extra = {"image_size": (h, w), "feature_size": (fh, fw), "cams": cams}
+    if net.deformable:
+        extra["min_opset"] = DEFORM_OPSET
     return ExportSpec("bevdepth", module, BEVDEPTH_INPUTS, BEVDEPTH_OUTPUTS, axes, metadata, random_inputs,
-                      synthetic_inputs, {"image_size": (h, w), "feature_size": (fh, fw), "cams": cams})
+                      synthetic_inputs, extra)
 
 
 BUILDERS: dict[str, Callable[..., ExportSpec]] = {"r18": build_r18, "bevdepth": build_bevdepth}

@@ -14,6 +14,7 @@ from .cameras import Camera, _matrix, intrinsics_from_dict
 from .errors import InputError
 from .geometry import ORTHONORMAL_TOL, rotation_error
 from .io import atomic_write_text, image_size, read_depth_png, read_image, read_mask
+from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
 
 FORMAT = "sgde-rig/1"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -72,7 +73,7 @@ class Frame:
     depths: Mapping[str, Path] = field(default_factory=dict)
     extra: Mapping[str, Any] = field(default_factory=dict)
     cameras: Mapping[str, CameraCapture] = field(default_factory=dict)
-    lidar: Any = None  # a readers' LiDAR sweep (sgde_plugin.lidar.LidarSweep) for ground truth; not serialised
+    lidar: LidarSweep | None = None  # the LiDAR sweep a reader found for ground truth; not serialised
 
     def capture_time_us(self, camera: str) -> int:
         """The time camera `camera` took its image of this frame (the frame's time unless given)."""
@@ -116,6 +117,7 @@ class Rig:
     root: Path | None = None
     masks: Mapping[str, Path] = field(default_factory=dict)
     extra: Mapping[str, Any] = field(default_factory=dict)
+    lidar_config: LidarDepthConfig = field(default_factory=LidarDepthConfig)  # how LiDAR sweeps become depth
 
     # --- look-ups ---------------------------------------------------------------------------
     @property
@@ -157,9 +159,15 @@ class Rig:
     def load_depth(self, frame_id: str, camera: str) -> np.ndarray | None:
         """Ground-truth depth in metres (0 = none) in the camera's convention, or None when the rig has none.
 
-        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera.
+        Depth PNGs are read directly; OmniMVS inverse-depth panoramas (TIFF) are splatted into the camera;
+        a frame's LiDAR sweep (nuScenes, DDAD) is projected into the camera at its own capture pose
+        (`sgde_plugin.lidar`, settings `lidar_config`), under the camera's mask.
         """
-        path = self.frame(frame_id).depths.get(camera)
+        frame = self.frame(frame_id)
+        path = frame.depths.get(camera)
+        if path is None and frame.lidar is not None:
+            return sweep_depth(frame.lidar, self.camera(camera), self.capture(frame, camera).camera_to_world,
+                               self.load_mask(camera), self.lidar_config)
         if path is None:
             return None
         if Path(path).suffix.lower() in (".tif", ".tiff"):

@@ -92,23 +92,25 @@ def warp_depth(depth: np.ndarray, src: Camera | CameraModel, dst: Camera | Camer
     return warp_depth_torch(d, src, dst, torch.as_tensor(np.asarray(src_to_dst, dtype=np.float64))).numpy()
 
 
-def min_pool_nonzero_torch(depth: Tensor, ky: int, kx: int | None = None, *, ceil: bool = False,
-                           return_indices: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+def min_pool_nonzero_torch(depth: Tensor, ky: int, kx: int | None = None, *, stride: int | None = None,
+                           ceil: bool = False, return_indices: bool = False) -> Tensor | tuple[Tensor, Tensor]:
     """Minimum non-zero value per ky x kx block of `depth` [..., H, W]; blocks without a value are 0.
 
-    The nearest surface per block (BEVDepth's ground-truth downsampling, with 0 = none). With `ceil`,
-    partial blocks at the right and bottom edges are pooled too; otherwise H and W are cut to whole
-    blocks. `return_indices` also gives, per block, the flat index (row * W + col) of the chosen pixel.
-    Exports to ONNX (max-pool of the negated map) and works in half precision.
+    The nearest surface per block (BEVDepth's ground-truth downsampling, with 0 = none). Blocks step by
+    the block size, or by `stride` (1: a sliding window). With `ceil`, partial blocks at the right and
+    bottom edges are pooled too; otherwise H and W are cut to whole blocks. `return_indices` also gives,
+    per block, the flat index (row * W + col) of the chosen pixel. Exports to ONNX (max-pool of the
+    negated map) and works in half precision.
     """
     kx = ky if kx is None else kx
     *lead, h, w = depth.shape
     flat = depth.reshape(-1, 1, h, w)
     if ky == kx == 1 and not return_indices:
         return depth
+    step = (ky, kx) if stride is None else (stride, stride)
     far_value = float(torch.finfo(depth.dtype).max) if depth.is_floating_point() else float(2**31 - 1)
     far = torch.where(flat > 0, flat, torch.full_like(flat, far_value))
-    pooled = F.max_pool2d(-far, kernel_size=(ky, kx), stride=(ky, kx), ceil_mode=ceil, return_indices=return_indices)
+    pooled = F.max_pool2d(-far, kernel_size=(ky, kx), stride=step, ceil_mode=ceil, return_indices=return_indices)
     if return_indices:
         pooled, index = pooled
     pooled = -pooled

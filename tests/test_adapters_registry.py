@@ -20,6 +20,10 @@ class _FakeRegistry:
         self.modules[name] = module
         return module
 
+    def build(self, cfg):
+        cfg = dict(cfg)
+        return self.modules[cfg.pop("type")](**cfg)
+
 
 def _fake_mmdet3d(monkeypatch) -> _FakeRegistry:
     reg = _FakeRegistry()
@@ -36,10 +40,15 @@ def _fake_mmdet3d(monkeypatch) -> _FakeRegistry:
 def test_registers_in_mmdet3d_models_when_available(monkeypatch):
     reg = _fake_mmdet3d(monkeypatch)
     importlib.reload(registry)  # importing the registry module registers (config custom_imports path)
-    from sgde_plugin.adapters import DepthToVoxelProposals, PriorDepthNet, PriorInjector
+    from sgde_plugin.adapters import DepthToVoxelProposals, PriorDepthNet
 
-    assert reg.modules == {"SGDEPriorDepthNet": PriorDepthNet, "SGDEPriorInjector": PriorInjector,
+    assert reg.modules == {"SGDEPriorDepthNet": PriorDepthNet, "SGDEPriorInjector": registry.inject_prior_from_config,
                            "SGDEDepthToVoxelProposals": DepthToVoxelProposals}
+    # a config wraps a depth net built from its own config: the net itself comes back, with a prior path
+    net = reg.build({"type": "SGDEPriorInjector", "in_channels": 8,
+                     "depth_net": {"type": "SGDEPriorDepthNet", "in_channels": 8, "mid_channels": 8,
+                                   "context_channels": 4, "depth_channels": 112, "use_prior": False}})
+    assert isinstance(net, PriorDepthNet) and hasattr(net, "sgde_prior")
     # registering again (re-import) is harmless, and importing the package registers too
     reg.modules.clear()
     import sgde_plugin.adapters as adapters

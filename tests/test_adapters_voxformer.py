@@ -54,7 +54,7 @@ def test_pinhole_plane_lands_in_the_exact_voxels():
     cam = Camera("front", Pinhole(64, 48, K), camera_mount(0.0, np.array([0.0, 0.0, 1.5])))
     depth = _plane_depth_pinhole(cam)
     assert np.allclose(depth, PLANE_X)  # fronto-parallel wall: constant z
-    module = DepthToVoxelProposals()
+    module = DepthToVoxelProposals(rig_frame="lidar")  # the constructed rig's frame stands in for the LiDAR's
     out = module(torch.from_numpy(depth)[None, None], [cam.intrinsics],
                  torch.from_numpy(cam.sensor_to_ego)[None, None])
     occ = _occupied(out["occupancy"][0])
@@ -63,10 +63,11 @@ def test_pinhole_plane_lands_in_the_exact_voxels():
     # by hand, pixel (u, v) = (0, 30): ego y = 31.5 / 40 * 10.1 = 7.954 (left), z = 1.5 - 6.5 / 40 * 10.1 = -0.141
     # -> voxel (50, floor((7.954 + 25.6) / 0.2), floor((-0.141 + 2) / 0.2)) = (50, 167, 9)
     assert (50, 167, 9) in occ
-    # proposals: half resolution, a coarse voxel is set exactly when it holds an occupied fine voxel
-    assert out["proposals"].shape == (1, 128, 128, 16)
-    assert _occupied(out["proposals"][0]) == {(i // 2, j // 2, k // 2) for i, j, k in occ}
-    assert proposal_indices(out["proposals"])[0].shape == (len(_occupied(out["proposals"][0])), 3)
+    # coarse occupancy: half resolution, a coarse voxel is set exactly when it holds an occupied fine voxel;
+    # without a query-proposal network there are no "proposals"
+    assert out["coarse_occupancy"].shape == (1, 128, 128, 16) and "proposals" not in out
+    assert _occupied(out["coarse_occupancy"][0]) == {(i // 2, j // 2, k // 2) for i, j, k in occ}
+    assert proposal_indices(out["coarse_occupancy"])[0].shape == (len(_occupied(out["coarse_occupancy"][0])), 3)
 
 
 def test_fisheye_virtual_views_and_raw_fisheye_place_the_plane_correctly():
@@ -122,8 +123,9 @@ def test_prior_replaces_depth_only_where_confident():
     # in the module the fused depth is what gets voxelised
     cam = Camera("c", Pinhole(2, 2, np.array([[8.0, 0, 0.5], [0, 8.0, 0.5], [0, 0, 1]])),
                  camera_mount(0.0, np.array([0.0, 0.0, 1.0])))
-    out = DepthToVoxelProposals()(depth, [cam.intrinsics], torch.from_numpy(cam.sensor_to_ego)[None, None],
-                                  prior=prior, confidence=conf)
+    out = DepthToVoxelProposals(rig_frame="lidar")(depth, [cam.intrinsics],
+                                                   torch.from_numpy(cam.sensor_to_ego)[None, None],
+                                                   prior=prior, confidence=conf)
     assert out["depth"].flatten().tolist() == [20.0, 8.0, 20.0, 10.0]
     # x indices floor(d / 0.2): 20 m -> 100 (twice), 8 m -> 40, 10 m -> 50
     assert sorted(i[0] for i in _occupied(out["occupancy"][0])) == [40, 50, 100, 100]
@@ -156,17 +158,17 @@ def test_mock_occupancy_head_learns_from_the_proposals():
     prior[..., 16:] = 0.0
     module = DepthToVoxelProposals(grid)
     s2e = torch.from_numpy(cam.sensor_to_ego)[None, None].float()
-    target = module(truth, [cam.intrinsics], s2e)["proposals"]
+    target = module(truth, [cam.intrinsics], s2e)["coarse_occupancy"]
     fused = module(truth * 1.15, [cam.intrinsics], s2e, prior=prior)
     plain = module(truth * 1.15, [cam.intrinsics], s2e)
     iou = lambda a, b: float((a * b).sum() / ((a + b) > 0).sum())  # noqa: E731
-    assert iou(fused["proposals"], target) > iou(plain["proposals"], target)
+    assert iou(fused["coarse_occupancy"], target) > iou(plain["coarse_occupancy"], target)
     torch.manual_seed(0)
     head = OccupancyHead()
     opt = torch.optim.Adam(head.parameters(), lr=1e-2)
     losses = []
     for _ in range(30):
-        loss = OccupancyHead.loss(head(fused["proposals"]), target)
+        loss = OccupancyHead.loss(head(fused["coarse_occupancy"]), target)
         opt.zero_grad()
         loss.backward()
         opt.step()

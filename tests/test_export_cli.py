@@ -69,6 +69,26 @@ def test_bad_checkpoints_are_refused_with_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_a_bevdepth_checkpoint_with_its_dcn_exports_at_opset_19_and_is_refused_at_17(tmp_path, capsys):
+    from mock_bev import bevdepth_depthnet_state
+
+    # BEVDepth's LightningModule layout: model.backbone.depth_net.* among the detector's other weights
+    ckpt = tmp_path / "bevdepth.ckpt"
+    state = {f"model.backbone.depth_net.{k}": v for k, v in bevdepth_depthnet_state(8, 16, 4, 112).items()}
+    torch.save({"state_dict": state | {"model.head.conv.weight": torch.zeros(2, 2)}}, ckpt)
+    out = tmp_path / "bev.onnx"
+    base = ["export", "onnx", "--model", "bevdepth", "--checkpoint", str(ckpt), "--image-size", "32x64",
+            "--out", str(out)]
+    assert main(base) == 2  # default opset 17
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "opset >= 19" in err and "deformable" in err and not out.exists()
+    assert main([*base, "--opset", "19", "--check"]) == 0
+    text = capsys.readouterr().out
+    assert "check passed (8 comparisons" in text and "opset 19" in text
+    meta = read_metadata(out)
+    assert json.loads(meta["sgde.inputs"])["intrin_mats"].startswith("float32 [B,S,N,4,4]")
+
+
 def test_exported_file_runs_in_a_fresh_onnxruntime_process(tmp_path):
     # export, keep torch's outputs, then run the file in a new interpreter that imports no project code
     from sgde_plugin.export.models import build_bevdepth

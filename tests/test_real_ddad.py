@@ -31,3 +31,63 @@ def test_scene_02_cameras_keep_their_datum_poses() -> None:
             # the per-datum poses differ from CAMERA_01's by millimetres, not more
             assert np.abs(cap.ego_to_world[:3, 3] - fr.ego_to_world[:3, 3]).max() < 0.02
         assert set(fr.cameras) == set(rig.camera_names) - {"CAMERA_01"}
+
+
+def test_lidar_truth_of_every_camera() -> None:
+    rig = load_rig(SAMPLE / "scene_02")
+    fr = rig.frames[0]
+    assert fr.lidar is not None and fr.lidar.timestamp_us - fr.timestamp_us == 91_370  # LiDAR 91 ms later
+    for cam in rig.camera_names:
+        d = rig.load_depth(fr.id, cam)
+        assert d.shape == (1216, 1936) and d.dtype == np.float32
+        assert np.count_nonzero(d) > 4000 and d[d > 0].min() >= 1.0 and d.max() <= 250.0
+
+
+def test_bench_real_on_scene_01_one_frame(tmp_path: Path) -> None:
+    from sgde_plugin.benchmarks.real import run_real
+    from sgde_plugin.rig import write_rig_json
+    from sgde_plugin.stereo.pipeline import PriorConfig
+
+    rig = load_rig(SAMPLE / "scene_01")
+    write_rig_json(rig, tmp_path / "same.json")  # a second pose source equal to the data set's
+    report = run_real(SAMPLE / "scene_01", [str(tmp_path / "same.json")], PriorConfig(scale=0.25), max_frames=1)
+    assert report["frames"] == 1 and report["pairs"] == ["CAMERA_01|CAMERA_06", "CAMERA_05|CAMERA_01"]
+    a, b = report["sources"]["dataset"], report["sources"][str(tmp_path / "same.json")]
+    assert a["overall"] == b["overall"]
+    overall = a["overall"]
+    assert overall["n_overlap"] == sum(c["n_overlap"] for c in a["cameras"].values()) > 1000
+    assert 0 < overall["n_prior"] and 0 < overall["coverage"] < 1
+    assert overall["abs_rel"] < 0.5
+
+
+def _copy_scene(tmp_path: Path) -> Path:
+    import shutil
+
+    dst = tmp_path / "scene_01"
+    shutil.copytree(SAMPLE / "scene_01", dst)
+    return dst
+
+
+@pytest.mark.parametrize("defect", ["truncated", "missing", "rig_lacks_camera"])
+def test_bench_real_bad_input_is_one_line_exit_2(defect: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    import json
+
+    scene = _copy_scene(tmp_path)
+    victim = sorted((scene / "point_cloud" / "LIDAR").iterdir())[1]
+    args = ["bench", "real", str(scene)]
+    if defect == "truncated":
+        victim.write_bytes(victim.read_bytes()[:1000])
+        expected = f"{victim}: not a readable .npz"
+    elif defect == "missing":
+        victim.unlink()
+        expected = f"{victim}: point cloud file not found"
+    else:
+        doc = load_rig(scene).to_dict()
+        doc["cameras"] = doc["cameras"][:2]
+        doc["pairs"], doc["frames"] = [doc["pairs"][0]], []
+        (tmp_path / "two.json").write_text(json.dumps(doc))
+        args += ["--rig", str(tmp_path / "two.json")]
+        expected = "cameras: lacks CAMERA_05"
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and expected in err, err

@@ -18,6 +18,10 @@ truth, LiDAR-like training depth, prior and its validity, per camera per frame, 
 for Dep Con). Scenes come from `sgde_plugin.synth`; priors from the project's prior pipeline
 (`sgde_plugin.stereo`, SGBM with true extrinsics), or on request from the ground truth restricted
 to the true overlap of adjacent cameras with stereo-like noise. The output says which was used.
+
+Each arm also reports the downstream effect on a VoxFormer-style stage 1: occupancy IoU / precision /
+recall of its depth against the exact occupancy of the test frames, on the Occ3D-nuScenes grid and on
+VoxFormer's grid (`occ_<grid>_<metric>`, see `benchmarks.occupancy`).
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from ..stereo.pipeline import PriorBuilder, PriorConfig
 from ..synth.presets import preset_cameras
 from ..synth.render import render
 from ..synth.world import build_world
+from .occupancy import occupancy_eval, occupancy_table
 
 # --- cameras ------------------------------------------------------------------------------------
 
@@ -183,10 +188,12 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
         torch.manual_seed(seed)
         train_s = train_arm(nets[name], seq, train_idx, steps, seed, arm.prior_weight, lr=lr)
         res = evaluate(nets[name], seq, test_idx)
+        res.update(occupancy_eval(nets[name], seq, test_idx))
         res["train_s"] = round(train_s, 1)
         res["prior_abs_rel"] = prior_quality["abs_rel"]
         if name == "baseline":
             res["pasted_abs_rel"] = evaluate(nets[name], seq, test_idx, paste_prior=True)["abs_rel"]
+            res.update({f"pasted_{k}": v for k, v in occupancy_eval(nets[name], seq, test_idx, True).items()})
         results[name] = res
         log(f"seed {seed} {name}: abs_rel {res['abs_rel']:.4f} dep_con {res['dep_con']:.4f} ({train_s:.0f} s)")
     return results, seq, test_idx
@@ -271,3 +278,4 @@ if __name__ == "__main__":
     out = run(fast="--fast" in sys.argv, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(json.dumps(out, indent=2))
     print(table(out))
+    print(occupancy_table(out["arms"]))

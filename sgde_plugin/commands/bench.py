@@ -10,7 +10,8 @@ import platform
 import sys
 import time
 
-HELP = "run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export) and write one JSON"
+HELP = ("run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export) and write one JSON; "
+        "`sgde bench real DIR [--rig RIG.json ...]` scores the prior on real frames against LiDAR")
 
 # name on the command line -> module in sgde_plugin.benchmarks; the fast set is what `make bench` runs
 BENCHMARKS = {
@@ -32,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {names}")
     parser.add_argument("--json", dest="json_out", help="write all results to this JSON file")
     parser.add_argument("--fast", action="store_true", help="smaller sizes, and skip the slow benchmarks unless named")
+    parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
+                        help="`real` only: another pose source (sgde-rig/1 extrinsics, e.g. a calibration); repeatable")
 
 
 def machine_description() -> dict:
@@ -74,6 +77,10 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..io import atomic_write_text
 
+    if args.names[:1] == ["real"]:
+        return run_real_bench(args)
+    if args.rig:
+        raise InputError(None, "--rig", "only `sgde bench real DIR` takes pose sources")
     names = args.names or [n for n in BENCHMARKS if not (args.fast and n in SLOW)]
     for n in names:
         if n not in BENCHMARKS:
@@ -99,3 +106,25 @@ def run(args: argparse.Namespace) -> int:
         atomic_write_text(args.json_out, json.dumps(record, indent=1, default=str) + "\n")
         print(f"wrote {args.json_out}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def run_real_bench(args: argparse.Namespace) -> int:
+    """`sgde bench real DIR [--rig RIG.json ...] [--json OUT]`: print the tables, optionally write the JSON."""
+    from ..benchmarks.real import report_tables, run_real
+    from ..errors import InputError
+    from ..io import atomic_write_text
+
+    if len(args.names) != 2:
+        raise InputError(None, "DIR", "`sgde bench real` takes exactly one scene folder (DIR)")
+    report = run_real(args.names[1], args.rig)
+    print(report_tables(report), flush=True)
+    if args.json_out:
+        record = {"machine": machine_description(), "results": {"real": report}}
+        atomic_write_text(args.json_out, json.dumps(record, indent=1, default=_json_number) + "\n")
+        print(f"wrote {args.json_out}", file=sys.stderr)
+    return 0
+
+
+def _json_number(value: object) -> object:
+    """NumPy scalars as Python numbers in the JSON record."""
+    return value.item() if hasattr(value, "item") else str(value)

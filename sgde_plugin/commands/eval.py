@@ -9,7 +9,8 @@ HELP = "evaluate cached depth priors against the rig folder's ground truth (accu
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `sgde eval`."""
-    parser.add_argument("dir", help="rig folder with ground-truth depth (depth/<frame>/<camera>.png)")
+    parser.add_argument("dir", help="rig folder with ground-truth depth (depth/<frame>/<camera>.png), or a "
+                        "nuScenes / DDAD scene (projected LiDAR)")
     parser.add_argument("--cache", required=True, help="prior cache built by `sgde prior`")
     parser.add_argument("--json", dest="json_out", help="also write the full report to this JSON file")
     parser.add_argument(
@@ -61,17 +62,18 @@ def run(args: argparse.Namespace) -> int:
     frames = [f for f in rig.frames if f.id in cached]
     if not frames:
         raise InputError(args.cache, "frames", f"none of the {len(rig.frames)} frames of {args.dir} is in the cache")
-    if not any(f.depths for f in frames):
-        raise InputError(args.dir, "depth", "no ground-truth depth for the cached frames")
+    if not any(f.depths or f.lidar is not None for f in frames):
+        raise InputError(args.dir, "depth", "no ground-truth depth (depth PNGs or LiDAR) for the cached frames")
     masks = {c: rig.load_mask(c) for c in rig.camera_names}
-    evaluator = PriorEvaluator(rig_true, args.max_depth)
+    lidar = not any(f.depths for f in frames)  # sparse truth: the overlap cannot be confirmed by the neighbour
+    evaluator = PriorEvaluator(rig_true, args.max_depth, sparse_truth=lidar)
     for frame in progress(frames, desc="eval", total=len(frames)):
         priors = {}
         for cam in rig.camera_names:
             depth, valid = cache.get(frame.id, cam)
             priors[cam] = depth * valid
         gts = {cam: rig.load_depth(frame.id, cam) for cam in rig.camera_names}
-        evaluator.add(priors, gts, masks)
+        evaluator.add(priors, gts, masks, frame=frame.id)
     report = evaluator.result()
     report.update({"rig": str(args.dir), "cache": str(args.cache), "truth": truth_source,
                    "cache_fingerprint": cache.fingerprint})

@@ -40,11 +40,13 @@ from ..cameras import Camera, intrinsics_from_dict
 from ..errors import InputError
 from ..geometry import invert_transform, make_transform, quaternion_to_rotation
 from ..io import image_size
+from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
 from .jsonio import get, read_json
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
 REFERENCE = "CAMERA_01"
+LIDAR = "LIDAR"
 QUATERNION_TOL = 1e-3
 
 _RFC3339 = re.compile(
@@ -178,7 +180,7 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
                 raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not in data")
             name = _field(_field(d, "id", scene_path, f"data[key={key}]", dict), "name", scene_path,
                           f"data[key={key}].id", str).upper()
-            if name in RING:
+            if name in RING or name == LIDAR:
                 by_name[name] = (key, d)
         if not frames_datums:
             present = tuple(c for c in RING if c in by_name)
@@ -215,6 +217,7 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
         K = _intrinsics(intr[i], w, h, calib_path, f"intrinsics[{i}]")
         cameras.append(Camera(cam, K, _pose(extr[i], calib_path, f"extrinsics[{i}]")))
     reference = REFERENCE if REFERENCE in present else present[0]
+    lidar_mount = _pose(extr[index[LIDAR]], calib_path, f"extrinsics[{index[LIDAR]}]") if LIDAR in index else None
 
     frames = []
     for n, by_name in enumerate(frames_datums):
@@ -233,10 +236,34 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
                 _check_image(images[cam.name], cam, scene_path, f"{where}.filename")
         captures = {cam.name: _capture(by_name[cam.name], cam, scene_path) for cam in cameras}
         ts, ego_to_world = captures[reference]
-        frames.append(Frame(f"{n:06d}", ts, ego_to_world, images, cameras=own_captures(ts, ego_to_world, captures)))
+        lidar = _lidar_sweep(by_name.get(LIDAR), lidar_mount, folder, scene_path)
+        frames.append(Frame(f"{n:06d}", ts, ego_to_world, images, cameras=own_captures(ts, ego_to_world, captures),
+                            lidar=lidar))
     ring = RING if present == RING else None
     pairs = ring_pairs(RING) if ring else ring_subset_pairs(RING, present)
     return Rig(tuple(cameras), pairs, tuple(frames), ring, folder, extra={"scene": folder.name})
+
+
+def _lidar_sweep(keyed: tuple[str, dict] | None, mount: np.ndarray | None, folder: Path, scene_path: Path
+                 ) -> LidarSweep | None:
+    """The sample's LIDAR datum as a sweep (file, mount, ego pose = pose_WL @ inverse(pose_VL), time)."""
+    if keyed is None or mount is None:
+        return None
+    key, d = keyed
+    where = f"data[key={key}]"
+    cloud = _field(_field(d, "datum", scene_path, where, dict), "point_cloud", scene_path, f"{where}.datum", dict,
+                   default=None)
+    if cloud is None:
+        return None
+    where = f"{where}.datum.point_cloud"
+    filename = _field(cloud, "filename", scene_path, where, str)
+    raw_pose = _field(cloud, "pose", scene_path, where, dict, default=None)
+    world_from_lidar = np.eye(4) if raw_pose is None else _pose(raw_pose, scene_path, f"{where}.pose",
+                                                               zero_is_identity=True)
+    ident = _field(d, "id", scene_path, f"data[key={key}]", dict)
+    ts = parse_timestamp_us(_field(ident, "timestamp", scene_path, f"data[key={key}].id"), scene_path,
+                            f"data[key={key}].id.timestamp")
+    return LidarSweep(folder / filename, "dgp_npz", mount, world_from_lidar @ invert_transform(mount), ts)
 
 
 def _capture(keyed: tuple[str, dict], cam: Camera, scene_path: Path) -> tuple[int, np.ndarray]:

@@ -12,7 +12,8 @@ nearest in time. Keyframes are identical in both modes. The frame's timestamp an
 come from the CAM_FRONT sample_data; nuScenes stores one ego pose per sample_data timestamp and its
 cameras fire one after another over ~50 ms, so every other camera keeps its own timestamp and ego pose
 as its capture (`Frame.cameras`). Sweeps reuse the keyframe calibration (nuScenes calibrates per scene,
-not per sweep).
+not per sweep). A frame's LiDAR sweep (`Frame.lidar`, for ground truth) is the sample's key LIDAR_TOP
+sample_data, or for a 12 Hz frame the LIDAR_TOP sample_data nearest in time, with its own ego pose.
 
 The big tables (`sample_data`, `ego_pose`: ~2.6M rows each in v1.0-trainval) are streamed: each row
 is parsed, reduced to a small tuple (cameras only; keyframes only unless sweeps are asked for; only
@@ -34,11 +35,13 @@ from ..cameras import Camera, intrinsics_from_dict
 from ..errors import InputError
 from ..geometry import make_transform, quaternion_to_rotation
 from ..io import image_size
+from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs
 from .jsonio import get, number_list, read_json, scan_table
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
 REFERENCE = "CAM_FRONT"  # the camera whose timestamp and ego pose a frame takes
+LIDAR = "LIDAR_TOP"  # its sweeps (.pcd.bin) become the depth ground truth
 TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
 QUATERNION_TOL = 1e-3  # |q| must be 1 within this; the rotation uses the normalised q
 
@@ -178,10 +181,10 @@ class NuScenesTables:
             if sensor not in channel_of:
                 raise InputError(path, f"[token={token}].sensor_token", f"unknown sensor {sensor!r}")
             channel = channel_of[sensor]
-            self._calib_channel[token] = channel if channel in RING else None
-            if channel in RING:
+            self._calib_channel[token] = channel if channel in RING or channel == LIDAR else None
+            if channel in RING or channel == LIDAR:
                 self._calib_rows[token] = row
-        self._channels = {c: c for c in RING}  # one shared string object per channel
+        self._channels = {c: c for c in (*RING, LIDAR)}  # one shared string object per channel
 
     def _load_sample_data(self) -> None:
         path = self.dir / "sample_data.json"
@@ -247,7 +250,7 @@ class NuScenesTables:
         sc = found[0]
         data_path = self.dir / "sample_data.json"
         rows = self._rows_by_scene.get(sc.token, [])
-        by_channel: dict[str, list[tuple]] = {c: [] for c in RING}
+        by_channel: dict[str, list[tuple]] = {c: [] for c in (*RING, LIDAR)}
         for r in rows:
             by_channel[r[_CHANNEL]].append(r)
         cameras = []
@@ -271,6 +274,8 @@ class NuScenesTables:
                 chosen[channel] = r
             keyframe_of[chosen[REFERENCE][_TOKEN]] = (sample, chosen)
         frames = list(keyframe_of.values())
+        lidar_rows = sorted(by_channel[LIDAR], key=lambda r: r[_TIME])
+        lidar_times = [r[_TIME] for r in lidar_rows]
         if self.sweeps:
             frames = []
             times = {c: [r[_TIME] for r in by_channel[c]] for c in RING}
@@ -279,8 +284,17 @@ class NuScenesTables:
                     frames.append(keyframe_of[r[_TOKEN]])
                 elif r[_KEY] is not True:
                     frames.append((r[_TOKEN], {c: _nearest(by_channel[c], times[c], r[_TIME]) for c in RING}))
+
+        def lidar_of(fid: str, chosen: dict[str, tuple]) -> tuple | None:
+            """The sample's key LiDAR sweep; for a 12 Hz frame the LiDAR sweep nearest in time."""
+            row = key_rows.get((fid, LIDAR))
+            if row is None and lidar_rows:
+                row = _nearest(lidar_rows, lidar_times, chosen[REFERENCE][_TIME])
+            return row
+
         return Rig(
-            tuple(cameras), ring_pairs(RING), tuple(self._frame(fid, ch, check_images, cameras) for fid, ch in frames),
+            tuple(cameras), ring_pairs(RING),
+            tuple(self._frame(fid, ch, check_images, cameras, lidar_of(fid, ch)) for fid, ch in frames),
             RING, self.root, extra={"scene": sc.name},
         )
 
@@ -313,7 +327,16 @@ class NuScenesTables:
                              f"missing (referenced by sample_data {row[_TOKEN]})")
         return pose
 
-    def _frame(self, frame_id: str, chosen: dict[str, tuple], check: bool, cameras: list[Camera]) -> Frame:
+    def _lidar(self, row: tuple | None) -> LidarSweep | None:
+        """A LIDAR_TOP sample_data row as a sweep: its file, mount, ego pose and time."""
+        if row is None:
+            return None
+        calib = self._calib_rows[row[_CALIB]]
+        mount = _pose(calib, self.dir / "calibrated_sensor.json", f"[token={row[_CALIB]}]")
+        return LidarSweep(self.root / row[_FILE], "nuscenes_bin", mount, self._ego_pose(row), row[_TIME])
+
+    def _frame(self, frame_id: str, chosen: dict[str, tuple], check: bool, cameras: list[Camera],
+               lidar: tuple | None = None) -> Frame:
         ref = chosen[REFERENCE]
         pose = self._ego_pose(ref)
         captures = own_captures(ref[_TIME], pose, {c: (r[_TIME], self._ego_pose(r)) for c, r in chosen.items()})
@@ -327,7 +350,7 @@ class NuScenesTables:
                 if image_size(path) != (cam.width, cam.height):
                     w, h = image_size(path)
                     raise InputError(path, "size", f"image is {w}x{h}, sample_data says {cam.width}x{cam.height}")
-        return Frame(frame_id, ref[_TIME], pose, images, cameras=captures)
+        return Frame(frame_id, ref[_TIME], pose, images, cameras=captures, lidar=self._lidar(lidar))
 
 
 class _Files(Mapping):

@@ -88,11 +88,16 @@ class _Group:
 
 
 class PriorEvaluator:
-    """Accumulates frames of priors and ground truth of one rig (true extrinsics); `.result()` reports."""
+    """Accumulates frames of priors and ground truth of one rig (true extrinsics); `.result()` reports.
 
-    def __init__(self, rig_true: Rig, max_depth: float = 80.0):
+    `sparse_truth` (LiDAR): a ground-truth point is in the true overlap when it projects inside the
+    neighbour (and its mask); the neighbour's sparse truth cannot confirm that it is not occluded there.
+    """
+
+    def __init__(self, rig_true: Rig, max_depth: float = 80.0, sparse_truth: bool = False):
         self.rig = rig_true
         self.max_depth = max_depth
+        self.sparse_truth = sparse_truth
         self.frames = 0
         self.cameras = {c: _Group() for c in rig_true.camera_names}
         self.pairs = {f"{a}|{b}": _Group() for a, b in rig_true.pairs}
@@ -100,9 +105,13 @@ class PriorEvaluator:
 
     def add(
         self, priors: Mapping[str, np.ndarray], gts: Mapping[str, np.ndarray | None],
-        masks: Mapping[str, np.ndarray | None] | None = None,
+        masks: Mapping[str, np.ndarray | None] | None = None, frame: str | None = None,
     ) -> None:
-        """One frame: prior depth per camera (0 = none) and ground truth per camera (None = unknown)."""
+        """One frame: prior depth per camera (0 = none) and ground truth per camera (None = unknown).
+
+        With `frame` (an id of the rig), cameras are related by their poses at their own captures
+        (`Rig.capture`), as they must be when they fired at different times; otherwise by the extrinsics.
+        """
         masks = masks or {}
         in_range = {}
         for name, gt in gts.items():
@@ -116,8 +125,11 @@ class PriorEvaluator:
         for a, b in self.rig.pairs:
             if a in in_range and b in in_range:
                 ca, cb = self.rig.camera(a), self.rig.camera(b)
-                overlap[a, b] = true_overlap(ca, in_range[a], cb, gts[b], masks.get(b))
-                overlap[b, a] = true_overlap(cb, in_range[b], ca, gts[a], masks.get(a))
+                a_to_b = None if frame is None else self._relative(frame, a, b)
+                b_to_a = None if a_to_b is None else invert_transform(a_to_b)
+                confirm_a, confirm_b = (None, None) if self.sparse_truth else (gts[a], gts[b])
+                overlap[a, b] = true_overlap(ca, in_range[a], cb, confirm_b, masks.get(b), a_to_b=a_to_b)
+                overlap[b, a] = true_overlap(cb, in_range[b], ca, confirm_a, masks.get(a), a_to_b=b_to_a)
         for name, g in in_range.items():
             prior = priors.get(name)
             if prior is None:
@@ -138,6 +150,10 @@ class PriorEvaluator:
                 prior = np.zeros_like(in_range[x]) if prior is None else prior
                 group.add(prior, in_range[x], overlap[x, y], overlap[x, y])
         self.frames += 1
+
+    def _relative(self, frame: str, a: str, b: str) -> np.ndarray:
+        """4x4 camera a -> camera b, each at its own capture of `frame`."""
+        return invert_transform(self.rig.capture(frame, b).camera_to_world) @ self.rig.capture(frame, a).camera_to_world
 
     def result(self) -> dict[str, Any]:
         """{"overall": row, "cameras": {name: row}, "pairs": {"A|B": row}, "frames": n}."""
