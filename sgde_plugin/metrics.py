@@ -212,7 +212,11 @@ def rig_dep_con(
     pairs: Sequence[tuple[str, str]],
     max_depth: float = math.inf,
 ) -> dict[str, Any]:
-    """Dep Con over a rig: both directions of every adjacent pair, pixels pooled; also per pair."""
+    """Dep Con over a rig: both directions of every adjacent pair, pixels pooled; also per pair.
+
+    Cameras are related by their `sensor_to_ego`; for a frame whose cameras fired at different times
+    pass `rig.as_captured(frame)`'s cameras, so the relative poses are those at each camera's capture.
+    """
     total, count = 0.0, 0
     per_pair: dict[str, float] = {}
     for a, b in pairs:

@@ -12,7 +12,7 @@ import numpy as np
 
 from .cameras import Camera, _matrix, intrinsics_from_dict
 from .errors import InputError
-from .geometry import ORTHONORMAL_TOL, rotation_error
+from .geometry import ORTHONORMAL_TOL, invert_transform, rotation_error
 from .io import atomic_write_text, image_size, read_depth_png, read_image, read_mask
 from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
 
@@ -148,6 +148,19 @@ class Rig:
         fr = frame if isinstance(frame, Frame) else self.frame(frame)
         ego = fr.capture_ego_to_world(camera)
         return Capture(fr.capture_time_us(camera), ego, ego @ self.camera(camera).sensor_to_ego)
+
+    def as_captured(self, frame: str | Frame) -> Rig:
+        """The rig with each camera's sensor_to_ego as it was at its own capture of `frame`, seen from the
+        frame's ego pose: inv(ego_to_world(frame)) @ capture(frame, c).camera_to_world.
+
+        Relative poses between its cameras are then the true ones between the images of that frame (what
+        rectification, triangulation and back-projection need); with no per-camera entries it is `self`.
+        """
+        fr = frame if isinstance(frame, Frame) else self.frame(frame)
+        if not fr.cameras:
+            return self
+        world_to_ego = invert_transform(np.asarray(fr.ego_to_world, np.float64))
+        return self.with_extrinsics({c: world_to_ego @ self.capture(fr, c).camera_to_world for c in fr.cameras})
 
     def load_image(self, frame_id: str, camera: str) -> np.ndarray:
         """RGB uint8 image (H, W, 3) of one camera in one frame."""

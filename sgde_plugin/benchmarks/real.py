@@ -57,7 +57,7 @@ def evaluate_source(rig: Any, rig_overlap: Any, images: dict, gts: dict, masks: 
     build = score = 0.0
     for fid, frame_images in images.items():
         t1 = time.perf_counter()
-        priors = builder.build(frame_images)
+        priors = builder.build(frame_images, frame=fid)
         t2 = time.perf_counter()
         evaluator.add({c: p.depth for c, p in priors.items()}, gts[fid], masks, frame=fid)
         build, score = build + t2 - t1, score + time.perf_counter() - t2

@@ -59,7 +59,7 @@ class PriorCompute:
             self._builder = PriorBuilder(self.rig, self.config)
             masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
             self._masks = {c: m for c, m in masks.items() if m is not None} or None
-        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks)
+        maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks, frame=frame_id)
         self.last_warning = self._builder.last_warning
         return {cam: (m.depth, m.confidence) for cam, m in maps.items()}
 
@@ -391,8 +391,14 @@ def default_workers(config: Any = None) -> int:
 
 
 def torch_threads_per_worker(workers: int) -> int:
-    """Torch threads per worker process: the CPUs shared out (one worker gets them all)."""
-    return max(1, usable_cpus() // max(1, workers))
+    """Torch threads per worker process: OMP_NUM_THREADS when set, else the idle CPUs shared out (one worker
+    on an idle machine gets them all; on a busy one, 1: OpenMP threads that wait for a core run ~10x slower)."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    if env.isdigit() and int(env) > 0:
+        return int(env)
+    cpus = usable_cpus()
+    idle = cpus - round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else cpus
+    return max(1, min(cpus // max(1, workers), idle))
 
 
 __all__ = [

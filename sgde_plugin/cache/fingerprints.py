@@ -1,8 +1,10 @@
 """Cache fingerprints: what a prior depends on (rig calibration, prior settings, algorithm version).
 
 A cache stores three digests per scene: `rig` (cameras with intrinsics and extrinsics, adjacent
-pairs, ego masks), `config` (PriorConfig.to_dict(), the prior algorithm version and the cache
-format) and `fingerprint` (both). Opening or extending a cache with other inputs is refused.
+pairs, ego masks), `config` (PriorConfig.to_dict(): every setting but the runtime ones (device,
+batching), and for a learned matcher the SHA-256 of its model files and architecture source; the
+prior algorithm version and the cache format) and `fingerprint` (both). Opening or extending a cache
+with other inputs is refused.
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ import platform
 import sys
 import time
 
-HELP = ("run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export) and write one JSON; "
+HELP = ("run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export, capture, learned) and "
+        "write one JSON; "
         "`sgde bench real DIR [--rig RIG.json ...]` scores the prior on real frames against LiDAR")
 
 # name on the command line -> module in sgde_plugin.benchmarks; the fast set is what `make bench` runs
@@ -23,8 +24,10 @@ BENCHMARKS = {
     "train-effect": "train_effect",
     "cache": "cache",
     "export": "export",
+    "capture": "capture",
+    "learned": "learned",
 }
-SLOW = {"train-effect"}
+SLOW = {"train-effect", "learned"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -26,6 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pose-noise-m", type=float, default=0.05,
                         help="translation error of each camera in rig.json, metres (default 0.05)")
     parser.add_argument("--supersample", type=int, default=1, help="k x k colour samples per pixel (default 1)")
+    parser.add_argument("--capture", choices=("sync", "sequential"), default="sync",
+                        help="sync: all cameras at the frame's time; sequential: in ring order over --sweep-ms "
+                        "while the car moves, each camera's time and ego pose written to the rig (default sync)")
+    parser.add_argument("--sweep-ms", type=float, default=50.0,
+                        help="sequential capture: time from the first to past the last camera, ms (default 50)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -44,8 +49,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, "--pose-noise-deg/--pose-noise-m", "must be >= 0")
     if not 1 <= args.supersample <= 4:
         raise InputError(None, "--supersample", "must be between 1 and 4")
+    if not 0 <= args.sweep_ms < 100:
+        raise InputError(None, "--sweep-ms", "must be in [0, 100) (one 10 Hz frame)")
     path = write_synth(args.preset, args.frames, out, seed=args.seed, scale=args.scale,
                        pose_noise_deg=args.pose_noise_deg, pose_noise_m=args.pose_noise_m,
-                       supersample=args.supersample)
+                       supersample=args.supersample, capture=args.capture, sweep_ms=args.sweep_ms)
     print(f"wrote {path}: preset {args.preset}, {args.frames} frames, seed {args.seed}, scale {args.scale}")
     return 0

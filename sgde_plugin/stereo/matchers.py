@@ -123,6 +123,15 @@ def _pad(batch: np.ndarray, pads: tuple[int, int, int, int]) -> np.ndarray:
     return np.pad(batch, ((0, 0), (0, 0), (top, bottom), (left, right)), mode="edge")
 
 
+def network_input(images: Sequence[np.ndarray], input_scale: float = 1.0, multiple: int = 32
+                  ) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """Same-size uint8 images -> the padded (B, 3, H', W') float32 batch a learned matcher gets, and the padding."""
+    h, w = images[0].shape[:2]
+    pads = centred_padding(h, w, multiple)
+    batch = _pad(np.stack([_as_rgb_float(img) for img in images]) * np.float32(input_scale), pads)
+    return np.ascontiguousarray(batch, dtype=np.float32), pads
+
+
 def _output_array(out: Any) -> np.ndarray:
     """A network's output as float32 (B, H, W): the last of a list/tuple, channel 0 of a flow."""
     if isinstance(out, (list, tuple)):
@@ -141,8 +150,8 @@ def _output_array(out: Any) -> np.ndarray:
 class LearnedMatcher:
     """What all learned matchers share: input layout, padding, batching, output convention, statistics.
 
-    `counts` accumulates, over the matched pixels, how many disparities were valid and how many were
-    clearly negative (a flow read with the wrong sign gives mostly negative disparities).
+    `counts` accumulates, over the matched pixels, how many disparities were finite, valid, and clearly
+    negative (a flow read with the wrong sign gives mostly negative disparities).
     """
 
     def __init__(self, input_scale: float = 1.0, flow_output: bool = False, pad_multiple: int = 32,
@@ -151,7 +160,7 @@ class LearnedMatcher:
         self.flow_output = bool(flow_output)  # output is a flow: disparity = -x
         self.pad_multiple = max(1, int(pad_multiple))
         self.batch_size = max(1, int(batch_size))
-        self.counts = {"pixels": 0, "valid": 0, "negative": 0}
+        self.counts = {"finite": 0, "valid": 0, "negative": 0}
 
     def run(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> np.ndarray:
         """The network on padded (B, 3, H, W) inputs -> raw output (B, H, W)."""
@@ -171,12 +180,11 @@ class LearnedMatcher:
         for i, ((left, _), d) in enumerate(zip(pairs, max_disparities)):
             groups.setdefault((left.shape[:2], int(d)), []).append(i)
         for ((h, w), d), members in groups.items():
-            pads = centred_padding(h, w, self.pad_multiple)
-            for k in range(0, len(members), max(1, self.batch_size)):
-                chunk = members[k : k + max(1, self.batch_size)]
-                a = _pad(np.stack([_as_rgb_float(pairs[i][0]) for i in chunk]) * self.input_scale, pads)
-                b = _pad(np.stack([_as_rgb_float(pairs[i][1]) for i in chunk]) * self.input_scale, pads)
-                raw = self.run(np.ascontiguousarray(a), np.ascontiguousarray(b), d)
+            for k in range(0, len(members), self.batch_size):
+                chunk = members[k : k + self.batch_size]
+                a, pads = network_input([pairs[i][0] for i in chunk], self.input_scale, self.pad_multiple)
+                b, _ = network_input([pairs[i][1] for i in chunk], self.input_scale, self.pad_multiple)
+                raw = self.run(a, b, d)
                 if raw.shape[0] != len(chunk) or raw.shape[1:] != a.shape[2:]:
                     raise InputError(None, "matcher", f"output of shape {tuple(raw.shape)} for inputs of shape "
                                      f"{tuple(a.shape)}: expected one full-size disparity or flow per input")
@@ -189,7 +197,7 @@ class LearnedMatcher:
         """Learned matchers have no own confidence: 1 where the disparity is finite and in range."""
         finite = np.isfinite(disp)
         valid = finite & (disp >= 0) & (disp < max_disparity)
-        self.counts["pixels"] += int(disp.size)
+        self.counts["finite"] += int(finite.sum())
         self.counts["valid"] += int(valid.sum())
         self.counts["negative"] += int((finite & (disp < -0.5)).sum())
         return np.where(valid, disp, 0.0).astype(np.float32), valid.astype(np.float32)
@@ -312,28 +320,28 @@ class OnnxMatcher(LearnedMatcher):
             first = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
             raise InputError(self.path, None, f"onnxruntime cannot load it ({first})") from None
         inputs = self._session.get_inputs()
-        if len(inputs) not in (2, 3):
-            raise InputError(self.path, "inputs", f"a matcher takes 2 image inputs (+ 1 optional search range), "
-                             f"this model has {len(inputs)}")
-        for inp in inputs[:2]:
+        images = [i for i in inputs if len(i.shape) == 4]
+        others = [i for i in inputs if len(i.shape) != 4]
+        if len(images) != 2 or len(others) > 1 or any(len(i.shape) > 1 for i in others):
+            shapes = ", ".join(f"{i.name} {list(i.shape)}" for i in inputs)
+            raise InputError(self.path, "inputs", f"a matcher takes 2 image inputs (B, 3, H, W) and optionally a "
+                             f"scalar search range; this model has {shapes}")
+        for inp in images:
             shape = list(inp.shape)
-            if len(shape) != 4:
-                raise InputError(self.path, f"inputs[{inp.name}]", f"shape {shape}: expected (B, 3, H, W)")
             if isinstance(shape[2], int) or isinstance(shape[3], int):
                 raise InputError(self.path, f"inputs[{inp.name}]", f"fixed size {shape[2]}x{shape[3]}: canvases "
                                  "differ per pair; re-export with dynamic height and width (torch.onnx.export(..., "
                                  "dynamic_axes={name: {2: 'height', 3: 'width'}}))")
-            if isinstance(shape[0], int):
-                self.batch_size = 1 if shape[0] == 1 else self.batch_size
-        self._names = [i.name for i in inputs]
-        self._range_type = inputs[2].type if len(inputs) == 3 else None
+            if shape[0] == 1:
+                self.batch_size = 1
+        self._names = [i.name for i in images]
+        self._range = (others[0].name, np.int64 if "int64" in others[0].type else np.float32) if others else None
 
     def run(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> np.ndarray:
         """The session on one batch."""
         feed = {self._names[0]: left, self._names[1]: right}
-        if self._range_type is not None:
-            dtype = np.int64 if "int64" in self._range_type else np.float32
-            feed[self._names[2]] = np.array(max_disparity, dtype=dtype)
+        if self._range is not None:
+            feed[self._range[0]] = np.array(max_disparity, dtype=self._range[1])
         return _output_array(self._session.run(None, feed))
 
 
@@ -477,6 +485,7 @@ __all__ = [
     "load_checkpoint",
     "load_learned_matcher",
     "model_digests",
+    "network_input",
     "onnx_files",
     "raft_stereo_module",
     "torch_device",

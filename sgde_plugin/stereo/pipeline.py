@@ -17,7 +17,8 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import InputError
-from ..rig import Rig
+from ..geometry import rotation_vector
+from ..rig import Frame, Rig
 from .backproject import BackProjection, backprojection, fuse_into
 from .filters import grey_float, lr_check, photometric_scores, refine_disparity, remove_islands
 from .matchers import Matcher, SGBMMatcher, load_learned_matcher, model_digests
@@ -205,6 +206,12 @@ class PairPlan:
     right: _Side
 
 
+def _same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: float = 1e-3) -> bool:
+    """True if two rigid transforms differ by less than `rot_tol` radians and `trans_tol` metres."""
+    angle = np.linalg.norm(rotation_vector(a[:3, :3].T @ b[:3, :3]))
+    return bool(angle < rot_tol and np.linalg.norm(a[:3, 3] - b[:3, 3]) < trans_tol)
+
+
 def _facing_half(fisheye: Camera, other: Camera) -> Camera:
     """The virtual pinhole half of `fisheye` that faces `other`."""
     halves = virtual_pinholes(fisheye)
@@ -216,7 +223,8 @@ class PriorBuilder:
     """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
 
     def __init__(self, rig: Rig, config: PriorConfig | None = None, threads: int | None = None):
-        self.rig = rig
+        self.rig = rig  # the geometry planned: `rig`, or `rig.as_captured(frame)` of the last frame built
+        self._base_rig = rig
         self.config = config or PriorConfig()
         # pairs processed in parallel: OpenCV's thread count by default (1 in a single-threaded worker);
         # a learned matcher parallelises inside torch instead
@@ -264,6 +272,15 @@ class PriorBuilder:
                 back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
                 sides.append(_Side(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back))
             self.plans.append(PairPlan(pair, sides[0], sides[1]))
+
+    def _plan_for(self, rig: Rig) -> None:
+        """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""
+        if all(_same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
+            return
+        self.rig = rig
+        self.plans = []
+        with torch_threads(1):
+            self._plan()
 
     @staticmethod
     def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
@@ -391,14 +408,21 @@ class PriorBuilder:
         return values, {"warp": t_warp, "match": t_match, "backproject": time.perf_counter() - t0}
 
     def build(
-        self, images: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray] | None = None
+        self, images: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray] | None = None,
+        frame: str | Frame | None = None,
     ) -> dict[str, PriorMap]:
         """Priors of all cameras for one frame; `masks` (True = use) default to the rig's static masks.
 
-        Pairs run in `self.threads` threads (OpenCV and NumPy release the GIL); the fusion into each
-        camera's map then happens in pair order, so the result does not depend on the thread count.
+        With `frame` (a frame of the rig, or its id), each camera is placed where it was at its own
+        capture of that frame (`Rig.as_captured`): cameras that fired at different times while the car
+        moved are rectified, triangulated and back-projected with their true relative pose; the pairs
+        are re-planned only when that geometry differs from the planned one. Pairs run in
+        `self.threads` threads (OpenCV and NumPy release the GIL); the fusion into each camera's map then
+        happens in pair order, so the result does not depend on the thread count.
         """
         t_start = time.perf_counter()
+        if frame is not None:
+            self._plan_for(self._base_rig.as_captured(frame))
         masks = dict(self._static_masks) if masks is None else dict(masks)
         masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
         for name, m in masks.items():
@@ -444,7 +468,7 @@ class PriorBuilder:
             inputs += self.matcher_inputs(plan, left, right)
             ranges += [plan.pair.max_disparity] * 2
         if hasattr(self.matcher, "counts"):
-            self.matcher.counts.update(pixels=0, valid=0, negative=0)
+            self.matcher.counts.update(finite=0, valid=0, negative=0)
         t0 = time.perf_counter()
         answers = match_many(inputs, ranges)
         t_each = (time.perf_counter() - t0 + t_warp) / len(self.plans)
@@ -459,9 +483,9 @@ class PriorBuilder:
             return None
         counts = getattr(self.matcher, "counts", None)
         name = self.config.matcher
-        if counts and counts["pixels"]:
-            if counts["negative"] > 0.5 * counts["pixels"]:
-                return (f"matcher {name} gave mostly negative disparities ({counts['negative'] / counts['pixels']:.0%}"
+        if counts and counts["finite"]:
+            if counts["negative"] > 0.5 * counts["finite"]:
+                return (f"matcher {name} gave mostly negative disparities ({counts['negative'] / counts['finite']:.0%}"
                         " of the pixels): is the flow sign right? (matcher_flow_output)")
             if counts["valid"] == 0:
                 return f"matcher {name} gave no valid disparity (check matcher_input_scale and matcher_flow_output)"

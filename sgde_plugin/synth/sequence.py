@@ -4,6 +4,11 @@
 perturbed like a real data set's calibration: each camera's rotation is multiplied by a rotation
 of exactly `pose_noise_deg` degrees about a random axis, and its position moved by exactly
 `pose_noise_m` metres in a random direction (seeded).
+
+Capture: `sync` renders every camera of a frame at the frame's time. `sequential` fires the cameras
+in ring order over `sweep_ms` (nuScenes-like 50 ms: camera i of M at i * sweep / M after the frame's
+time) while the ego moves on; each camera is rendered at its own time and ego pose, and both rig
+files carry them as per-camera captures (`frames[].cameras`).
 """
 
 from __future__ import annotations
@@ -22,13 +27,15 @@ import numpy as np
 from ..cameras import Camera
 from ..geometry import make_transform, rodrigues
 from ..io import write_depth_png, write_image
-from ..rig import Frame, Rig, ring_pairs, write_rig_json
+from ..rig import CameraCapture, Frame, Rig, ring_pairs, write_rig_json
 from .presets import preset_cameras, preset_ring, preset_world
 from .random_rig import random_rig
 from .render import render, rig_lod, torch_threads
 from .world import MAX_FRAMES, World
 
 FRAME_RATE_HZ = 10.0
+CAPTURES = ("sync", "sequential")
+SWEEP_MS = 50.0  # nuScenes: the six cameras fire over about 50 ms
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,8 +69,13 @@ def perturb_extrinsics(cameras: list[Camera], seed: int, noise_deg: float, noise
     return out
 
 
-def _check(preset: str, frames: int, scale: float, pose_noise_deg: float, pose_noise_m: float) -> None:
+def _check(preset: str, frames: int, scale: float, pose_noise_deg: float, pose_noise_m: float,
+           capture: str = "sync", sweep_ms: float = SWEEP_MS) -> None:
     preset_ring(preset)  # raises for an unknown preset
+    if capture not in CAPTURES:
+        raise ValueError(f"capture must be one of {', '.join(CAPTURES)}, got {capture!r}")
+    if not 0 <= sweep_ms < 1e3 / FRAME_RATE_HZ:
+        raise ValueError(f"sweep_ms must be in [0, {1e3 / FRAME_RATE_HZ:g}), got {sweep_ms}")
     if not 1 <= frames <= MAX_FRAMES:
         raise ValueError(f"frames must be in 1..{MAX_FRAMES}, got {frames}")
     if not 0 < scale <= 4:
@@ -72,15 +84,25 @@ def _check(preset: str, frames: int, scale: float, pose_noise_deg: float, pose_n
         raise ValueError("pose noise must be >= 0")
 
 
+def _frame(index: int, world: World, ring: tuple[str, ...], capture: str, sweep_ms: float) -> Frame:
+    """Frame `index` at 10 Hz; with sequential capture, camera i of M fires i * sweep / M later."""
+    t_us = int(round(index * 1e6 / FRAME_RATE_HZ))
+    captures = {}
+    if capture == "sequential":
+        for i, name in enumerate(ring[1:], start=1):
+            ts = t_us + int(round(i * sweep_ms * 1e3 / len(ring)))
+            captures[name] = CameraCapture(ts, world.ego_pose(ts * 1e-6))
+    return Frame(frame_id(index), t_us, world.ego_pose(t_us * 1e-6), cameras=captures)
+
+
 def _rigs(preset: str, frames: int, seed: int, scale: float, noise_deg: float, noise_m: float,
-          world: World) -> tuple[Rig, Rig]:
+          world: World, capture: str = "sync", sweep_ms: float = SWEEP_MS) -> tuple[Rig, Rig]:
     cameras = preset_cameras(preset, scale, seed)
     ring = tuple(c.name for c in cameras)
-    frame_list = tuple(
-        Frame(frame_id(i), int(round(i * 1e6 / FRAME_RATE_HZ)), world.ego_pose(i / FRAME_RATE_HZ))
-        for i in range(frames)
-    )
+    frame_list = tuple(_frame(i, world, ring, capture, sweep_ms) for i in range(frames))
     info = {"preset": preset, "seed": int(seed), "scale": float(scale), "frame_rate_hz": FRAME_RATE_HZ}
+    if capture != "sync":
+        info.update(capture=capture, sweep_ms=float(sweep_ms))
     if preset == "random":
         info["random_rig"] = random_rig(seed).summary()
     rig_true = Rig(tuple(cameras), ring_pairs(ring), frame_list, ring, extra={"synth": {**info, "extrinsics": "true"}})
@@ -108,7 +130,8 @@ def _render_frames(world: World, rig_true: Rig, supersample: int,
 
     def one(job: tuple[Frame, Camera]) -> tuple[np.ndarray, np.ndarray]:
         fr, cam = job
-        return render(world, cam, fr.ego_to_world, fr.timestamp_us * 1e-6, supersample, threads=1, lod=lod)
+        cap = rig_true.capture(fr, cam.name)  # the camera's own time and ego pose (sequential capture)
+        return render(world, cam, cap.ego_to_world, cap.timestamp_us * 1e-6, supersample, threads=1, lod=lod)
 
     with torch_threads(1), ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         results = pool.map(one, jobs)
@@ -118,11 +141,12 @@ def _render_frames(world: World, rig_true: Rig, supersample: int,
 
 
 def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, pose_noise_deg: float = 1.0,
-                   pose_noise_m: float = 0.05, supersample: int = 1, workers: int | None = None) -> SynthSequence:
+                   pose_noise_m: float = 0.05, supersample: int = 1, workers: int | None = None,
+                   capture: str = "sync", sweep_ms: float = SWEEP_MS) -> SynthSequence:
     """Render a sequence in memory (images and depths keyed by frame id, then camera name)."""
-    _check(preset, frames, scale, pose_noise_deg, pose_noise_m)
+    _check(preset, frames, scale, pose_noise_deg, pose_noise_m, capture, sweep_ms)
     world = preset_world(preset, seed)
-    rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world)
+    rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world, capture, sweep_ms)
     seq = SynthSequence(rig_true, rig, world)
 
     def keep(fid: str, cam: str, rgb: np.ndarray, depth: np.ndarray) -> None:
@@ -135,19 +159,20 @@ def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, 
 
 def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, scale: float = 1.0,
                 pose_noise_deg: float = 1.0, pose_noise_m: float = 0.05, supersample: int = 1,
-                show_progress: bool | None = None, workers: int | None = None) -> Path:
+                show_progress: bool | None = None, workers: int | None = None, capture: str = "sync",
+                sweep_ms: float = SWEEP_MS) -> Path:
     """Render a sequence into an sgde-rig/1 folder (built in a temporary sibling, renamed at the end).
 
     `out_dir` must not exist or be an empty folder. Writes rig.json (perturbed extrinsics),
     rig_true.json (true extrinsics), frames/<id>/<camera>.png and depth/<id>/<camera>.png.
     """
-    _check(preset, frames, scale, pose_noise_deg, pose_noise_m)
+    _check(preset, frames, scale, pose_noise_deg, pose_noise_m, capture, sweep_ms)
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise FileExistsError(f"{out} exists and is not an empty folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     world = preset_world(preset, seed)
-    rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world)
+    rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world, capture, sweep_ms)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
         def save(fid: str, cam: str, rgb: np.ndarray, depth: np.ndarray) -> None:
