@@ -116,7 +116,8 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, Tensor], dict[str, Any]
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad input file
-        raise InputError(path, None, f"not a weights-only torch checkpoint ({type(exc).__name__}: {exc})") from None
+        first = (str(exc).strip().splitlines() or [""])[0][:200]  # torch's explanation runs over many lines
+        raise InputError(path, None, f"not a weights-only torch checkpoint ({type(exc).__name__}: {first})") from None
     if not isinstance(obj, dict):
         raise InputError(path, None, f"expected a dict, found {type(obj).__name__}")
     info: dict[str, Any] = {}

@@ -473,6 +473,10 @@ def _vector(entry: dict, key: str, where: str, lengths: tuple[int, ...] | None =
     return arr
 
 
+MAX_PIXELS = 1e6  # no focal length or principal point of a real camera is this large
+MAX_IMAGE_SIDE = 65535  # the largest PNG/JPEG side OpenCV writes
+
+
 def _intrinsic_matrix(entry: dict, where: str) -> np.ndarray:
     if "K" not in entry or entry["K"] is None:
         raise InputError(None, f"{where}.K", "missing")
@@ -484,6 +488,8 @@ def _intrinsic_matrix(entry: dict, where: str) -> np.ndarray:
         raise InputError(None, f"{where}.K", f"is not a square 3x3 matrix (shape {list(K.shape)})")
     if not np.all(np.isfinite(K)):
         raise InputError(None, f"{where}.K", "contains NaN or infinity")
+    if np.abs(K).max() > MAX_PIXELS:
+        raise InputError(None, f"{where}.K", f"has an absurd value ({np.abs(K).max():.3g} > {MAX_PIXELS:g} pixels)")
     if abs(np.linalg.det(K)) < 1e-9 or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise InputError(None, f"{where}.K", "is singular (focal lengths must be positive)")
     if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
@@ -495,6 +501,8 @@ def _size(entry: dict, key: str, where: str) -> int:
     value = entry.get(key)
     if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
         raise InputError(None, f"{where}.{key}", "missing or not a positive integer")
+    if value > MAX_IMAGE_SIDE:
+        raise InputError(None, f"{where}.{key}", f"{value} is absurd (more than {MAX_IMAGE_SIDE} pixels)")
     return value
 
 

@@ -21,4 +21,9 @@ class InputError(Exception):
     def line(self) -> str:
         """The single line shown to the user."""
         parts = [p for p in (self.file, self.key) if p]
-        return ": ".join([*parts, self.problem])
+        return _one_line(": ".join([*parts, self.problem]))
+
+
+def _one_line(text: str) -> str:
+    """Control characters (a newline in a camera name, say) shown escaped, so the message stays one line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import os
 import struct
 import tempfile
@@ -17,12 +18,27 @@ from .errors import InputError
 DEPTH_PNG_SCALE = 256.0
 
 
+def is_plain_name(name: str) -> bool:
+    """True for a name usable as one file name: not empty, not '.' or '..', no path separator, no control
+    character, no surrounding spaces, at most 200 characters."""
+    return (
+        isinstance(name, str) and 0 < len(name) <= 200 and name not in (".", "..") and name == name.strip()
+        and not any(c in "/\\" or not c.isprintable() for c in name)
+    )
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary sibling path; rename it onto `path` only if the block succeeds."""
+    """Yield a temporary sibling path; rename it onto `path` only if the block succeeds. A path that
+    cannot be written (a folder, a read-only file system, a parent that is a file) is an InputError."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    if path.is_dir():
+        raise InputError(path, None, "is a folder; expected a file path")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise InputError(path, None, f"cannot write ({exc.strerror or exc})") from None
     os.close(fd)
     tmp_path = Path(tmp)
     # mkstemp creates 0600; give the file the mode a plain open() would
@@ -32,6 +48,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as exc:  # a full disk, say: nothing half-written is left behind
+        raise InputError(path, None, f"cannot write ({exc.strerror or exc})") from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -71,12 +89,54 @@ def write_image(path: str | Path, rgb: np.ndarray) -> None:
     atomic_write_bytes(path, buf.tobytes())
 
 
+def _read_file(path: str | Path) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except OSError as exc:
+        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
+
+
+def check_complete(data: bytes, path: str | Path) -> None:
+    """InputError when PNG or JPEG bytes are cut short (no IEND chunk / no end-of-image marker), which
+    decoders would otherwise fill with grey or report only on stderr."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-32:]:
+        raise InputError(path, None, "truncated PNG (no IEND chunk)")
+    if data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[-1024:]:
+        raise InputError(path, None, "truncated JPEG (no end-of-image marker)")
+
+
+def _decode(path: str | Path, flags: int) -> np.ndarray | None:
+    """OpenCV decode of a complete file (a truncated one is refused before the decoder sees it)."""
+    data = _read_file(path)
+    check_complete(data, path)
+    return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+
+
 def read_image(path: str | Path) -> np.ndarray:
-    """Read an 8-bit colour image as HxWx3 RGB uint8; InputError if unreadable."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    """Read an 8-bit colour image as HxWx3 RGB uint8; InputError if unreadable or truncated."""
+    img = _decode(path, cv2.IMREAD_COLOR)
     if img is None:
         raise InputError(path, None, "cannot read image")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def decode_check(path: str | Path) -> None:
+    """Decode an image file completely (not only its header); InputError naming the file when it is
+    truncated or corrupted. Uses Pillow, which reports problems as exceptions, not on stderr."""
+    import warnings
+
+    from PIL import Image
+
+    data = _read_file(path)
+    check_complete(data, path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(io.BytesIO(data)) as im:
+                im.load()
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
+        raise InputError(path, None, f"cannot decode image ({first})") from None
 
 
 def depth_to_png_array(depth_m: np.ndarray) -> np.ndarray:
@@ -93,7 +153,7 @@ def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
 
 def read_depth_png(path: str | Path) -> np.ndarray:
     """Read a KITTI-convention depth PNG to float32 metres (0 = no value)."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = _decode(path, cv2.IMREAD_UNCHANGED)
     if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
         raise InputError(path, None, "not a single-channel uint16 depth PNG")
     return raw.astype(np.float32) / DEPTH_PNG_SCALE
@@ -101,7 +161,7 @@ def read_depth_png(path: str | Path) -> np.ndarray:
 
 def read_mask(path: str | Path) -> np.ndarray:
     """Read a static mask PNG as bool HxW (True = use, 0 in the file = ignore)."""
-    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    raw = _decode(path, cv2.IMREAD_GRAYSCALE)
     if raw is None:
         raise InputError(path, None, "cannot read mask")
     return raw > 0
@@ -110,6 +170,15 @@ def read_mask(path: str | Path) -> np.ndarray:
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of a PNG or JPEG from its header, without decoding the pixels."""
     path = Path(path)
+    try:
+        return _header_size(path)
+    except OSError as exc:  # a folder where an image belongs, no permission, ...
+        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
+    except struct.error:  # cut short inside the header
+        raise InputError(path, None, "not a readable PNG or JPEG image (header cut short)") from None
+
+
+def _header_size(path: Path) -> tuple[int, int]:
     with open(path, "rb") as f:
         head = f.read(32)
         if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":

@@ -13,10 +13,12 @@ import numpy as np
 from .cameras import Camera, _matrix, intrinsics_from_dict
 from .errors import InputError
 from .geometry import ORTHONORMAL_TOL, invert_transform, rotation_error
-from .io import atomic_write_text, image_size, read_depth_png, read_image, read_mask
+from .io import atomic_write_text, image_size, is_plain_name, read_depth_png, read_image, read_mask
 from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
 
 FORMAT = "sgde-rig/1"
+MAX_MOUNT_M = 1e3  # a camera mounted farther than this from the ego origin is a unit or typing error
+MAX_WORLD_M = 1e8  # ego positions beyond this are not on Earth (UTM-sized coordinates are ~1e7 m)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
@@ -245,7 +247,7 @@ def ring_subset_pairs(ring: tuple[str, ...] | list[str], present: tuple[str, ...
     return tuple(p for p in ring_pairs(ring) if p[0] in keep and p[1] in keep)
 
 
-def _transform(entry: dict, key: str, where: str, required: bool = True) -> np.ndarray:
+def _transform(entry: dict, key: str, where: str, required: bool = True, max_m: float = MAX_WORLD_M) -> np.ndarray:
     if key not in entry and not required:
         return np.eye(4)
     T = _matrix(entry, key, (4, 4), where)
@@ -254,6 +256,9 @@ def _transform(entry: dict, key: str, where: str, required: bool = True) -> np.n
     err = rotation_error(T[:3, :3])
     if err > ORTHONORMAL_TOL:
         raise InputError(None, f"{where}.{key}", f"rotation is not orthonormal (error {err:.2g} > 1e-6)")
+    if np.linalg.norm(T[:3, 3]) > max_m:
+        raise InputError(None, f"{where}.{key}", f"translation of {np.linalg.norm(T[:3, 3]):.3g} m is absurd "
+                         f"(more than {max_m:g} m)")
     return T
 
 
@@ -293,10 +298,14 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
         name = entry.get("name")
         if not isinstance(name, str) or not name:
             raise InputError(None, f"{where}.name", "missing or not a string")
+        if not is_plain_name(name):
+            raise InputError(None, f"{where}.name", f"{name!r} is not a plain file name (no '/', '\\', '..', "
+                             "control characters or surrounding spaces)")
         where = f"cameras[{name}]"
         if any(c.name == name for c in cameras):
             raise InputError(None, where, "duplicate camera name")
-        cameras.append(Camera(name, intrinsics_from_dict(entry, where), _transform(entry, "sensor_to_ego", where)))
+        pose = _transform(entry, "sensor_to_ego", where, max_m=MAX_MOUNT_M)
+        cameras.append(Camera(name, intrinsics_from_dict(entry, where), pose))
     names = {c.name for c in cameras}
 
     if ("ring" in doc) == ("pairs" in doc):
@@ -311,6 +320,8 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
                 raise InputError(None, "ring", f"camera {n!r} does not exist")
         if len(set(ring_doc)) != len(ring_doc):
             raise InputError(None, "ring", "names a camera twice")
+        if len(ring_doc) < 2:
+            raise InputError(None, "ring", "needs at least two cameras (a ring of one has no adjacent pair)")
         ring = tuple(ring_doc)
         pairs = ring_pairs(ring)
     else:
@@ -324,7 +335,11 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
             for n in p:
                 if n not in names:
                     raise InputError(None, f"pairs[{i}]", f"camera {n!r} does not exist")
+            if any(sorted(p) == sorted(q) for q in pairs_l):
+                raise InputError(None, f"pairs[{i}]", f"repeats the pair {p[0]!r}-{p[1]!r}")
             pairs_l.append((p[0], p[1]))
+        if not pairs_l:
+            raise InputError(None, "pairs", "lists no pair (a rig needs at least one adjacent pair)")
         pairs = tuple(pairs_l)
 
     frames_doc = doc.get("frames", [])
@@ -338,8 +353,8 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
         if not isinstance(entry, dict):
             raise InputError(None, where, "not an object")
         fid = entry.get("id")
-        if not isinstance(fid, str) or not fid or "/" in fid:
-            raise InputError(None, f"{where}.id", "missing or not a plain string")
+        if not isinstance(fid, str) or not is_plain_name(fid):
+            raise InputError(None, f"{where}.id", "missing or not a plain file name")
         if fid in seen:
             raise InputError(None, f"{where}.id", f"duplicate frame id {fid!r}")
         seen.add(fid)
@@ -363,6 +378,10 @@ def read_rig_json(path: str | Path, root: Path | None = None) -> Rig:
         raise InputError(path, None, "file not found") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"bad JSON ({exc})") from None
+    except RecursionError:
+        raise InputError(path, None, "bad JSON (nested too deeply)") from None
+    except OSError as exc:  # a folder named rig.json, no permission, ...
+        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
     try:
         return rig_from_dict(doc, root)
     except InputError as exc:

@@ -9,7 +9,7 @@ import torch
 from mock_bev import bevdepth_depthnet_state
 from torch import nn
 
-from sgde_plugin.adapters import PriorDepthNet, depth_bins, inject_prior
+from sgde_plugin.adapters import PRIOR_KEY, PriorDepthNet, depth_bins, inject_prior
 from sgde_plugin.adapters.bevdepth import DeformConv3x3
 from sgde_plugin.adapters.camera_aware import camera_params
 from sgde_plugin.adapters.depth_bins import depth_bin_labels, num_depth_bins
@@ -277,3 +277,10 @@ def test_injected_net_is_exact_before_training_keeps_class_and_keys_then_learns(
     plain.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("sgde_prior.")})
     with pytest.raises(ValueError, match="already has a prior path"):
         inject_prior(net, in_channels=8)
+
+
+def test_a_prior_of_the_wrong_rank_in_mats_dict_is_refused_naming_the_key():
+    net = PriorDepthNet(4, 8, 2, 112).eval()
+    mats = _mats(1, 2) | {PRIOR_KEY: torch.zeros(2, 32, 48)}
+    with pytest.raises(ValueError, match=r"sgde_prior must be \[B, S, N, H, W\] or \[B, N, H, W\], got \[2, 32, 48\]"):
+        net(torch.randn(2, 4, 2, 3), mats)

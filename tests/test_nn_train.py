@@ -15,6 +15,7 @@ from sgde_plugin.nn.train import (
     SUPERVISED_ARMS,
     arm_nets,
     evaluate,
+    frame_tensors,
     pooled_abs_rel,
     supervised_loss,
     train_arm,
@@ -98,3 +99,24 @@ def test_train_arm_lowers_the_training_loss(seq):
     assert seconds > 0
     assert after < 0.5 * before, (before, after)
     assert np.isfinite(after)
+
+
+@pytest.fixture(scope="module")
+def seq_context():
+    return load_sequence([0], (48, 80), seed=1, prior="overlap-noise", render_factor=2, context_s=0.1)
+
+
+@pytest.mark.parametrize("sources", ["temporal", "spatial", "both"])
+def test_self_supervision_is_lowest_at_the_true_depth(seq_context, sources):
+    from sgde_plugin.nn.photometric import PhotometricConfig
+    from sgde_plugin.nn.train import SelfSupervision
+
+    seq = seq_context
+    config = PhotometricConfig(temporal=sources != "spatial", spatial=sources != "temporal", smoothness=0.0)
+    loss = SelfSupervision(seq, config)
+    rgb = frame_tensors(seq, [0])[0]
+    gt = torch.from_numpy(np.where(seq.depth[0] > 0, seq.depth[0], 100.0))[:, None]
+    value = {f: float(loss({("depth", 0): gt * f}, 0, rgb, (0,))) for f in (0.7, 1.0, 1.4)}
+    # the poses (ego trajectory over time, extrinsics across cameras) are right: the truth explains the views best
+    assert value[1.0] < 0.8 * value[0.7] and value[1.0] < 0.8 * value[1.4], value
+    assert seq.context_images[0].any() and seq.camera_to_world.shape == (1, 6, 4, 4)

@@ -1,4 +1,4 @@
-"""`sgde bench train-effect`: does the depth prior help a depth network? Three arms, one budget.
+"""`sgde bench train-effect`: does the depth prior help a depth network? Three (or four) arms, one budget.
 
 Supervised training of the reference R18 depth net on a nuScenes-like synthetic sequence (six
 cameras), evaluated on held-out frames further down the street:
@@ -13,6 +13,14 @@ where the prior pipeline matches), 24 training frames and 12 held-out frames per
 Adam lr 4e-4, LiDAR-like sparse supervision, evaluation on dense ground truth <= 80 m, and the
 prior arms with the optional validity channel. No pretrained weights (offline).
 
+`--supervision self` (``run(supervision="self")``) trains the four arms of the paper's self-supervised
+table instead (baseline, + input, + L1, + input & L1) with view synthesis (`sgde_plugin.nn.photometric`):
+each camera's depth is scored by warping the same camera at t -/+ ``context_s`` (poses from the ego
+trajectory) and its two adjacent cameras of the same capture (metric scale) into it; a LiDAR-supervised
+baseline from the same initial weights is trained alongside as the reference for "a working
+self-supervised baseline". Abs Rel is reported without and with per-image median scaling.
+The training loop itself lives in `sgde_plugin.nn.train`.
+
 Data enter through one function, `load_sequence`, returning a `RigSequence` (images, ground
 truth, LiDAR-like training depth, prior and its validity, per camera per frame, plus the cameras
 for Dep Con). Scenes come from `sgde_plugin.synth`; priors from the project's prior pipeline
@@ -26,8 +34,12 @@ VoxFormer's grid (`occ_<grid>_<metric>`, see `benchmarks.occupancy`).
 
 from __future__ import annotations
 
+import copy
+import math
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -36,7 +48,15 @@ from ..cameras import Camera
 from ..metrics import depth_metrics
 from ..nn import DepthNet
 from ..nn.sequence import RigSequence, lidar_pattern, overlap_masks
-from ..nn.train import MAX_DEPTH_EVAL, SUPERVISED_ARMS, arm_nets, evaluate, train_arm
+from ..nn.train import (
+    MAX_DEPTH_EVAL,
+    SELF_SUPERVISED_ARMS,
+    SUPERVISED_ARMS,
+    SelfSupervision,
+    arm_nets,
+    evaluate,
+    train_arm,
+)
 from ..rig import Frame, Rig, ring_pairs
 from ..stereo.pipeline import PriorBuilder, PriorConfig
 from ..synth.presets import preset_cameras
@@ -79,18 +99,17 @@ def thin_hits(hits: np.ndarray, density: float, rng: np.random.Generator) -> np.
 
 # --- the data entry point -----------------------------------------------------------------------
 
-Shot = Callable[[Camera, int], tuple[np.ndarray, np.ndarray]]
+Shot = Callable[[Camera, float], tuple[np.ndarray, np.ndarray]]
 
 
-def _renderer(seed: int, frame_step_s: float) -> Shot:
-    """(camera, frame id) -> (RGB, depth) of the `sgde_plugin.synth` street of world ``seed``."""
+def _renderer(seed: int) -> tuple[Shot, Callable[[float], np.ndarray]]:
+    """(camera, time s) -> (RGB, depth) of the `sgde_plugin.synth` street of world ``seed``; its ego pose at a time."""
     world = build_world(seed)
 
-    def shot(cam: Camera, k: int) -> tuple[np.ndarray, np.ndarray]:
-        t = k * frame_step_s
+    def shot(cam: Camera, t: float) -> tuple[np.ndarray, np.ndarray]:
         return render(world, cam, world.ego_pose(t), t)
 
-    return shot
+    return shot, world.ego_pose
 
 
 def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray:
@@ -108,7 +127,8 @@ def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray:
 
 def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, frame_step_s: float = 0.5,
                   prior: str = "pipeline", render_factor: int = 4,
-                  supervision_density: float | None = None) -> RigSequence:
+                  supervision_density: float | None = None, context_s: float | None = None,
+                  context_ids: Collection[int] | None = None) -> RigSequence:
     """Frames `frame_ids` (time = id * frame_step_s) of a six-camera street at network size (H, W).
 
     Frames are rendered at ``render_factor`` times the network size (as a real cache is built at
@@ -117,6 +137,9 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
     ``prior="overlap-noise"`` from the ground truth restricted to the true overlap with stereo-like
     noise. Images are area-downsampled, depths (truth, prior) min-pooled, to the network size.
     ``supervision_density`` thins the LiDAR-like training depth to that fraction of pixels.
+    With ``context_s`` the sequence also carries what self-supervision needs: every camera's pose in
+    the world and, for the frames in ``context_ids`` (default all), the images ``context_s`` seconds
+    before and after (the temporal sources) with their poses.
     """
     from ..cache.resample import resize_depth, resize_matrix, warp_image
 
@@ -126,7 +149,7 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
         raise ValueError(f"prior must be 'pipeline' or 'overlap-noise', got {prior!r}")
     render_cams = rig_cameras(rw, rh)
     cameras = [c.resized(w, h) for c in render_cams]
-    shot = _renderer(seed, frame_step_s)
+    shot, ego_pose = _renderer(seed)
     n, frames = len(cameras), len(frame_ids)
     big_images = np.zeros((frames, n, rh, rw, 3), np.uint8)
     images = np.zeros((frames, n, h, w, 3), np.uint8)
@@ -134,7 +157,7 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
     shrink = resize_matrix((rh, rw), (h, w))
     for k, fid in enumerate(frame_ids):
         for i, cam in enumerate(render_cams):
-            big_images[k, i], big_depth = shot(cam, fid)
+            big_images[k, i], big_depth = shot(cam, fid * frame_step_s)
             images[k, i] = warp_image(big_images[k, i], shrink, (h, w))
             depth[k, i] = resize_depth(big_depth, (h, w))[0]
     overlap = np.stack([overlap_masks(depth[k], cameras) for k in range(frames)])
@@ -154,78 +177,200 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
     if supervision_density is not None:
         hits = thin_hits(hits, supervision_density, np.random.default_rng(seed + 7919))
     supervision = np.where(hits, depth, 0.0).astype(np.float32)
-    return RigSequence(
+    seq = RigSequence(
         cameras=cameras, pairs=list(ring_pairs([c.name for c in cameras])), images=images, depth=depth,
         supervision=supervision, prior=prior_map.astype(np.float32), valid=valid, overlap=overlap,
         scene_source="sgde_plugin.synth procedural street (nuscenes preset)", prior_source=prior_source,
     )
+    if context_s is not None:
+        wanted = set(frame_ids if context_ids is None else context_ids)
+        _add_contexts(seq, [fid * frame_step_s for fid in frame_ids], [fid in wanted for fid in frame_ids],
+                      context_s, render_cams, shot, ego_pose)
+    return seq
+
+
+def _add_contexts(seq: RigSequence, times: list[float], wanted: list[bool], context_s: float,
+                  render_cams: list[Camera], shot: Shot, ego_pose: Callable[[float], np.ndarray]) -> None:
+    """Fill the sequence's camera poses and, for the wanted frames, the temporal context images and poses."""
+    from ..cache.resample import resize_matrix, warp_image
+
+    n = len(render_cams)
+    h, w = seq.images.shape[2:4]
+    shrink = resize_matrix((render_cams[0].height, render_cams[0].width), (h, w))
+    seq.camera_to_world = np.zeros((len(times), n, 4, 4))
+    seq.context_images = np.zeros((len(times), 2, n, h, w, 3), np.uint8)
+    seq.context_camera_to_world = np.tile(np.eye(4), (len(times), 2, n, 1, 1))
+    for k, t in enumerate(times):
+        for i, cam in enumerate(render_cams):
+            seq.camera_to_world[k, i] = ego_pose(t) @ cam.sensor_to_ego
+        if not wanted[k]:
+            continue
+        for j, dt in enumerate((-context_s, context_s)):
+            for i, cam in enumerate(render_cams):
+                seq.context_images[k, j, i] = warp_image(shot(cam, t + dt)[0], shrink, (h, w))
+                seq.context_camera_to_world[k, j, i] = ego_pose(t + dt) @ cam.sensor_to_ego
 
 
 ARMS = tuple(arm.name for arm in SUPERVISED_ARMS)
+SELF_ARMS = tuple(arm.name for arm in SELF_SUPERVISED_ARMS)
+REFERENCE = "LiDAR-supervised baseline"  # the self-supervised bench's reference arm
+SUPERVISION = {
+    "lidar": "LiDAR-like (32 beams from the roof, <= 70 m), evaluation on dense ground truth <= 80 m",
+    "self": "self-supervised view synthesis (SSIM + L1, alpha 0.85, per-pixel minimum, auto-mask, edge-aware "
+            "smoothness 1e-3, four scales) from the same camera at t -/+ context_s (ego trajectory poses) and "
+            "the two adjacent cameras of the same capture (metric scale); evaluation on dense ground truth "
+            "<= 80 m, without and with per-image median scaling",
+}
+
+
+SELF_INITIAL_DEPTH_M = 10.0  # self-supervised nets start predicting this depth everywhere (all arms alike)
+SELF_LR = 1e-3
+
+
+def start_at_depth(net: DepthNet, depth_m: float) -> None:
+    """Set the depth heads' biases so that a zero input to them gives ``depth_m`` (a view-synthesis loss
+    only sees pixels a few pixels from their current match: a random net's ~1 m start is too far)."""
+    sig = (1.0 / depth_m - 1.0 / net.max_depth) / (1.0 / net.min_depth - 1.0 / net.max_depth)
+    with torch.no_grad():
+        for head in net.decoder.heads.values():
+            head.bias.fill_(math.log(sig / (1.0 - sig)))
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """What one run of the bench trains and evaluates (the same for every arm and seed)."""
+
+    size: tuple[int, int]
+    steps: int
+    n_train: int
+    n_test: int
+    validity: bool
+    lr: float
+    render_factor: int = 4
+    supervision_density: float | None = None
+    stem: str = "full"
+    supervision: str = "lidar"
+    context_s: float = 0.1
+
+
+def _seed_data(seed: int, p: Protocol, log: Callable[[str], None]) -> tuple[RigSequence, list[int], list[int]]:
+    """The seed's sequence (training frames, then held-out frames after a gap down the street)."""
+    gap = 6  # held-out frames come after a gap further down the street (not rendered)
+    frame_ids = list(range(p.n_train)) + list(range(p.n_train + gap, p.n_train + gap + p.n_test))
+    t0 = time.perf_counter()
+    context = p.context_s if p.supervision == "self" else None
+    seq = load_sequence(frame_ids, p.size, seed=seed, render_factor=p.render_factor,
+                        supervision_density=p.supervision_density, context_s=context,
+                        context_ids=frame_ids[:p.n_train])
+    log(f"seed {seed} data: {len(frame_ids)} frames x {len(seq.cameras)} cameras at {p.size} "
+        f"in {time.perf_counter() - t0:.0f} s")
+    return seq, list(range(p.n_train)), list(range(p.n_train, p.n_train + p.n_test))
 
 
 def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test: int, validity: bool,
              lr: float, log: Callable[[str], None], render_factor: int = 4,
              supervision_density: float | None = None,
-             stem: str = "full") -> tuple[dict[str, dict], RigSequence, list[int]]:
-    """One world and one initialisation (both from ``seed``): train and evaluate the three arms."""
-    gap = 6  # held-out frames come after a gap further down the street (not rendered)
-    frame_ids = list(range(n_train)) + list(range(n_train + gap, n_train + gap + n_test))
-    t0 = time.perf_counter()
-    seq = load_sequence(frame_ids, size, seed=seed, render_factor=render_factor,
-                        supervision_density=supervision_density)
-    train_idx, test_idx = list(range(n_train)), list(range(n_train, n_train + n_test))
-    log(f"seed {seed} data: {len(frame_ids)} frames x {len(seq.cameras)} cameras at {size} "
-        f"in {time.perf_counter() - t0:.0f} s")
+             stem: str = "full", supervision: str = "lidar",
+             context_s: float = 0.1) -> tuple[dict[str, dict], RigSequence, list[int]]:
+    """One world and one initialisation (both from ``seed``): train and evaluate the arms of ``supervision``
+    (LiDAR-like: three arms; self-supervised: four arms plus a LiDAR-supervised reference baseline)."""
+    p = Protocol(size, steps, n_train, n_test, validity, lr, render_factor, supervision_density, stem, supervision,
+                 context_s)
+    seq, train_idx, test_idx = _seed_data(seed, p, log)
     prior_quality = depth_metrics(seq.prior[test_idx], seq.depth[test_idx], mask=seq.valid[test_idx],
                                   max_depth=MAX_DEPTH_EVAL)
     torch.manual_seed(seed)
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0, scales=(0, 1, 2, 3))
-    nets = arm_nets(init, SUPERVISED_ARMS, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem)
+    if supervision == "self":
+        start_at_depth(init, SELF_INITIAL_DEPTH_M)
+    arms = SELF_SUPERVISED_ARMS if supervision == "self" else SUPERVISED_ARMS
+    nets = arm_nets(init, arms, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem)
+    self_sup = SelfSupervision(seq) if supervision == "self" else None
+    plan = [(arm.name, nets[arm.name], arm.prior_weight, self_sup) for arm in arms]
+    if self_sup is not None:
+        plan.append((REFERENCE, copy.deepcopy(init), None, None))
     results: dict[str, dict] = {}
-    for arm in SUPERVISED_ARMS:
-        name = arm.name
+    for name, net, weight, loss in plan:
         torch.manual_seed(seed)
-        train_s = train_arm(nets[name], seq, train_idx, steps, seed, arm.prior_weight, lr=lr)
-        res = evaluate(nets[name], seq, test_idx)
-        res.update(occupancy_eval(nets[name], seq, test_idx))
+        train_s = train_arm(net, seq, train_idx, steps, seed, weight, lr=lr, self_supervision=loss)
+        res = evaluate(net, seq, test_idx)
+        res.update(occupancy_eval(net, seq, test_idx))
         res["train_s"] = round(train_s, 1)
         res["prior_abs_rel"] = prior_quality["abs_rel"]
         if name == "baseline":
-            res["pasted_abs_rel"] = evaluate(nets[name], seq, test_idx, paste_prior=True)["abs_rel"]
-            res.update({f"pasted_{k}": v for k, v in occupancy_eval(nets[name], seq, test_idx, True).items()})
+            res["pasted_abs_rel"] = evaluate(net, seq, test_idx, paste_prior=True)["abs_rel"]
+            res.update({f"pasted_{k}": v for k, v in occupancy_eval(net, seq, test_idx, True).items()})
         results[name] = res
-        log(f"seed {seed} {name}: abs_rel {res['abs_rel']:.4f} dep_con {res['dep_con']:.4f} ({train_s:.0f} s)")
+        log(f"seed {seed} {name}: abs_rel {res['abs_rel']:.4f} (median-scaled {res['abs_rel_median_scaled']:.4f}) "
+            f"dep_con {res['dep_con']:.4f} ({train_s:.0f} s)")
     return results, seq, test_idx
+
+
+def _change(arm: dict, base: dict, key: str) -> float:
+    return round(100.0 * (arm[key] - base[key]) / base[key], 2)
+
+
+def _rounded(d: dict) -> dict:
+    return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+def _summary(per_seed: dict[int, dict], names: tuple[str, ...], supervision: str) -> dict:
+    """Means and spreads over seeds, changes against the baseline, and the issue's targets."""
+    seeds = list(per_seed)
+    mean = {arm: {m: float(np.mean([per_seed[s][arm][m] for s in seeds])) for m in per_seed[seeds[0]][arm]}
+            for arm in names}
+    std = {arm: {m: float(np.std([per_seed[s][arm][m] for s in seeds]))
+                 for m in ("abs_rel", "abs_rel_median_scaled", "dep_con")} for arm in names}
+    base, best = mean["baseline"], mean["+ input & L1"]
+    out = {
+        "arms": {arm: _rounded(mean[arm]) for arm in names},
+        "arms_std": {arm: _rounded(std[arm]) for arm in names},
+        "per_seed": {str(s): {arm: _rounded(per_seed[s][arm]) for arm in names} for s in seeds},
+        "abs_rel_change_pct": _change(best, base, "abs_rel"),
+        "dep_con_change_pct": _change(best, base, "dep_con"),
+        "changes_pct": {arm: {k: _change(mean[arm], base, k) for k in ("abs_rel", "abs_rel_median_scaled", "dep_con")}
+                        for arm in names if arm != "baseline"},
+    }
+    if supervision == "self":
+        ref = mean[REFERENCE]
+        out["baseline_vs_lidar_median_scaled"] = round(base["abs_rel_median_scaled"] / ref["abs_rel_median_scaled"], 3)
+        out["baseline_vs_lidar"] = round(base["abs_rel_median_scaled"] / ref["abs_rel"], 3)
+        out["target_abs_rel_-12pct"] = bool(out["abs_rel_change_pct"] <= -12.0)
+        out["target_dep_con_-20pct"] = bool(out["dep_con_change_pct"] <= -20.0)
+        out["target_working_baseline_1.5x"] = bool(out["baseline_vs_lidar_median_scaled"] <= 1.5)
+    else:
+        out["target_abs_rel_-10pct"] = bool(out["abs_rel_change_pct"] <= -10.0)
+        out["target_dep_con_lower"] = bool(out["dep_con_change_pct"] < 0.0)
+    return out
+
+
+def _protocol(fast: bool, supervision: str, size: tuple[int, int] | None, steps: int | None,
+              train_frames: int | None, test_frames: int | None) -> tuple[tuple[int, int], int, int, int]:
+    """Defaults of size, steps, training and held-out frames (``fast``: a smoke run)."""
+    if supervision not in SUPERVISION:
+        raise ValueError(f"supervision must be one of {', '.join(SUPERVISION)}, got {supervision!r}")
+    full_steps = 500 if supervision == "lidar" else 300
+    return (size or ((48, 80) if fast else (64, 112)), steps or (30 if fast else full_steps),
+            train_frames or (6 if fast else 24), test_frames or (2 if fast else 12))
 
 
 def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | None = None,
         train_frames: int | None = None, test_frames: int | None = None, seeds: tuple[int, ...] | None = None,
-        validity: bool = True, lr: float = 4e-4, log: Callable[[str], None] | None = None,
-        render_factor: int = 4, supervision_density: float | None = None, stem: str = "full") -> dict:
-    """Run the three arms for each seed and return per-seed and mean figures (see module docstring)."""
+        validity: bool = True, lr: float | None = None, log: Callable[[str], None] | None = None,
+        render_factor: int = 4, supervision_density: float | None = None, stem: str = "full",
+        supervision: str = "lidar", context_s: float = 0.1) -> dict:
+    """Run the arms for each seed and return per-seed and mean figures (see module docstring).
+    ``lr`` defaults to 4e-4 (LiDAR-like) or 1e-3 (self-supervised)."""
     log = log or (lambda _msg: None)
-    size = size or ((48, 80) if fast else (64, 112))
-    steps = steps or (30 if fast else 500)
-    n_train = train_frames or (6 if fast else 24)
-    n_test = test_frames or (2 if fast else 12)
+    lr = lr if lr is not None else (SELF_LR if supervision == "self" else 4e-4)
+    size, steps, n_train, n_test = _protocol(fast, supervision, size, steps, train_frames, test_frames)
     seeds = tuple(seeds) if seeds is not None else ((0,) if fast else (0, 1, 2))
     t0, cpu0 = time.perf_counter(), time.process_time()
     per_seed, seq, test_idx = {}, None, []
     for seed in seeds:
         per_seed[seed], seq, test_idx = run_seed(seed, size, steps, n_train, n_test, validity, lr, log,
-                                                 render_factor, supervision_density, stem)
-    mean = {arm: {m: float(np.mean([per_seed[s][arm][m] for s in seeds])) for m in per_seed[seeds[0]][arm]}
-            for arm in ARMS}
-    std = {arm: {m: float(np.std([per_seed[s][arm][m] for s in seeds])) for m in ("abs_rel", "dep_con")}
-           for arm in ARMS}
-    base, best = mean["baseline"], mean["+ input & L1"]
-    abs_rel_change = 100.0 * (best["abs_rel"] - base["abs_rel"]) / base["abs_rel"]
-    dep_con_change = 100.0 * (best["dep_con"] - base["dep_con"]) / base["dep_con"]
-
-    def rounded(d: dict) -> dict:
-        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in d.items()}
-
+                                                 render_factor, supervision_density, stem, supervision, context_s)
+    names = ARMS if supervision == "lidar" else (*SELF_ARMS, REFERENCE)
     return {
         "scene": seq.scene_source,
         "prior": seq.prior_source,
@@ -239,35 +384,34 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
         "lr": lr,
         "validity_channel": validity,
         "stem": stem,
-        "supervision": "LiDAR-like (32 beams from the roof, <= 70 m), evaluation on dense ground truth <= 80 m",
+        "supervision": SUPERVISION[supervision],
         "supervision_density": supervision_density,
+        "context_s": context_s if supervision == "self" else None,
         "render_factor": render_factor,
         "prior_pasted_note": "baseline.pasted_abs_rel: the baseline's prediction with the prior pasted in wherever "
                              "it is valid, i.e. what a purely local use of the prior can give",
         "init": "random (no pretrained weights available offline); per seed identical initial weights and data "
-                "order for the three arms; a seed also changes the world",
+                "order for all arms; a seed also changes the world"
+                + (f"; depth heads start at {SELF_INITIAL_DEPTH_M:g} m" if supervision == "self" else ""),
         "overlap_fraction_test": round(float(seq.overlap[test_idx].mean()), 4),
         "prior_fraction_test": round(float(seq.valid[test_idx].mean()), 4),
-        "arms": {arm: rounded(mean[arm]) for arm in ARMS},
-        "arms_std": {arm: rounded(std[arm]) for arm in ARMS},
-        "per_seed": {str(s): {arm: rounded(per_seed[s][arm]) for arm in ARMS} for s in seeds},
-        "abs_rel_change_pct": round(abs_rel_change, 2),
-        "dep_con_change_pct": round(dep_con_change, 2),
-        "target_abs_rel_-10pct": bool(abs_rel_change <= -10.0),
-        "target_dep_con_lower": bool(dep_con_change < 0.0),
+        **_summary(per_seed, names, supervision),
         "total_s": round(time.perf_counter() - t0, 1),
         "total_cpu_s": round(time.process_time() - cpu0, 1),
         "torch_threads": torch.get_num_threads(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
     }
 
 
 def table(result: dict) -> str:
-    """Markdown table of the three arms (means over seeds)."""
-    lines = ["| arm | Abs Rel | Sq Rel | RMSE | RMSE log | d<1.25 | Abs Rel overlap | Abs Rel outside | Dep Con |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    """Markdown table of the arms (means over seeds)."""
+    lines = ["| arm | Abs Rel | Abs Rel median-scaled | Sq Rel | RMSE | RMSE log | d<1.25 | Abs Rel overlap | "
+             "Abs Rel outside | Dep Con |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in result["arms"].items():
-        lines.append(f"| {name} | {r['abs_rel']:.3f} | {r['sq_rel']:.3f} | {r['rmse']:.3f} | {r['rmse_log']:.3f} | "
-                     f"{r['a1']:.3f} | {r['abs_rel_overlap']:.3f} | {r['abs_rel_outside']:.3f} | {r['dep_con']:.3f} |")
+        lines.append(f"| {name} | {r['abs_rel']:.3f} | {r['abs_rel_median_scaled']:.3f} | {r['sq_rel']:.3f} | "
+                     f"{r['rmse']:.3f} | {r['rmse_log']:.3f} | {r['a1']:.3f} | {r['abs_rel_overlap']:.3f} | "
+                     f"{r['abs_rel_outside']:.3f} | {r['dep_con']:.3f} |")
     return "\n".join(lines)
 
 
@@ -275,7 +419,8 @@ if __name__ == "__main__":
     import json
     import sys
 
-    out = run(fast="--fast" in sys.argv, log=lambda m: print(m, file=sys.stderr, flush=True))
+    mode = "self" if "self" in sys.argv else "lidar"
+    out = run(fast="--fast" in sys.argv, supervision=mode, log=lambda m: print(m, file=sys.stderr, flush=True))
     print(json.dumps(out, indent=2))
     print(table(out))
     print(occupancy_table(out["arms"]))

@@ -29,8 +29,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import progress
+from .backends import location_name
+from .creation import prepare_scene, remove_partial_files
 from .fingerprints import config_document, fingerprint_parts
-from .store import SceneWriter, location_name, prepare_scene, remove_partial_files
+from .lock import writer_lock
+from .writer import SceneWriter
 
 Compute = Callable[[str], Mapping[str, tuple[np.ndarray, np.ndarray | None]]]
 ENGINES = ("local", "ray")
@@ -80,6 +83,8 @@ class BuildReport:
     engine: str
     frame_seconds: list[float] = field(default_factory=list)  # when each built frame was done, from start
     warnings: list[tuple[str, str]] = field(default_factory=list)  # (frame id, why its prior is empty)
+    frames_repaired: dict[str, str] = field(default_factory=dict)  # damaged frames rebuilt: {frame id: problem}
+    locked: bool = False  # whether the cache's writer lock was held (local folders)
 
     def steady_rate(self) -> float:
         """Frames per second once every worker has finished its first frame (start-up excluded)."""
@@ -95,8 +100,16 @@ class BuildReport:
         return (
             f"{self.location} [{self.scene}]: {self.frames_built} frames built, {self.frames_already_done} already "
             f"there, {self.frames_total} in scene; {self.seconds:.1f} s ({rate:.2f} frames/s, {self.workers} "
-            f"{self.engine} workers); fingerprint {self.fingerprint}"
+            f"{self.engine} workers); fingerprint {self.fingerprint}{self.repair_text()}"
         )
+
+    def repair_text(self) -> str:
+        """'; N damaged frames rebuilt: id (problem), ...' or '' when none was."""
+        if not self.frames_repaired:
+            return ""
+        shown = ", ".join(f"{fid} ({why})" for fid, why in list(self.frames_repaired.items())[:10])
+        more = f", +{len(self.frames_repaired) - 10} more" if len(self.frames_repaired) > 10 else ""
+        return f"; {len(self.frames_repaired)} damaged frame(s) rebuilt: {shown}{more}"
 
 
 def sanitize_scene_name(name: str) -> str:
@@ -153,6 +166,9 @@ def run_frame(compute: Compute, writer: SceneWriter, index: int, frame_id: str) 
         return index, writer.write_frame(index, maps), None, getattr(compute, "last_warning", None)
     except InputError as exc:  # passed back as a tuple: InputError does not pickle
         return index, 0, (exc.file, exc.key, exc.problem), None
+    except OSError as exc:  # unreadable input, a full disk, a read-only cache: named, not a crash
+        where = exc.filename if getattr(exc, "filename", None) else location_name(writer.location)
+        return index, 0, (str(where), f"frame {frame_id}", exc.strerror or str(exc)), None
 
 
 # --- local processes ----------------------------------------------------------------------
@@ -160,6 +176,12 @@ _WORKER: dict[str, Any] = {}
 
 
 def _init_worker(compute: Compute, writer: SceneWriter, torch_n: int = 1) -> None:
+    import signal
+
+    from .lifetime import die_with_parent
+
+    die_with_parent()  # the fork server; it dies with the main process in turn
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the main process stops the workers
     limit_threads(1, torch_n)
     _WORKER["compute"], _WORKER["writer"] = compute, writer
 
@@ -175,7 +197,8 @@ def _mp_context() -> multiprocessing.context.BaseContext:
     if "forkserver" in methods:
         ctx = multiprocessing.get_context("forkserver")
         heavy = ("torch", "cv2", "sgde_plugin.rig", "sgde_plugin.stereo.pipeline")
-        ctx.set_forkserver_preload(["sgde_plugin.cache.build", *(m for m in heavy if m in sys.modules)])
+        preload = ["sgde_plugin.cache.lifetime", "sgde_plugin.cache.build"]
+        ctx.set_forkserver_preload([*preload, *(m for m in heavy if m in sys.modules)])
         return ctx
     return multiprocessing.get_context("spawn")
 
@@ -203,8 +226,13 @@ def _run_local(tasks: list[tuple[int, str]], compute: Compute, writer: SceneWrit
                 for fut in finished:
                     on_done(fut.result())
         except BaseException:
+            # interrupted (Ctrl-C, SIGTERM) or failed: stop at once; a killed frame write is harmless,
+            # its done marker comes last
             for fut in running:
                 fut.cancel()
+            for proc in list(getattr(ex, "_processes", {}).values()):
+                proc.terminate()
+            ex.shutdown(wait=False, cancel_futures=True)
             raise
 
 
@@ -288,10 +316,18 @@ def build_cache(
     show_progress: bool | None = None,
     on_warning: Callable[[str, str], None] | None = None,
     strict: bool = False,
+    repair: bool = False,
+    wait_s: float = 0.0,
 ) -> BuildReport:
     """Build (or resume) the priors of every frame of `rig` into the cache `out` (folder or fsspec
-    URL). Refuses (InputError) a cache built with another calibration or configuration. A frame whose
-    prior comes out empty goes to `on_warning(frame_id, text)` and the report's `warnings`; `strict` stops there."""
+    URL). Refuses (InputError) a cache built with another calibration or configuration, and a cache
+    another build is writing (after waiting up to `wait_s` s for its writer lock). Damaged frames are
+    rebuilt: those with a missing shard always, those with any unreadable chunk with `repair=True`.
+    A frame whose prior comes out empty goes to `on_warning(frame_id, text)` and the report's
+    `warnings`; `strict` stops there.
+
+    With workers > 1 the frames run in processes started by a fork server, which imports the calling
+    script's main module: call it from a script under `if __name__ == "__main__":`."""
     if engine not in ENGINES:
         raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
     if config is None and compute is None:
@@ -305,53 +341,58 @@ def build_cache(
     parts = dict(fingerprint_parts(rig, config, algo_version))
     parts["config_document"] = config_document(config, algo_version)
     start = time.perf_counter()
-    plan = prepare_scene(out, scene, rig, parts, storage_options)
-    remove_partial_files(out, scene)
-    if compute is None:
-        compute = PriorCompute(rig, config)
-    writer = SceneWriter(out, scene, storage_options)
-    tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
-    workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
-    built, pixels = 0, 0
-    stamps: list[float] = []
-    bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
-    warnings: list[tuple[str, str]] = []
+    with writer_lock(out, wait_s) as locked:
+        try:
+            plan = prepare_scene(out, scene, rig, parts, storage_options, repair=repair, locked=locked)
+            remove_partial_files(out, scene)
+        except OSError as exc:  # a read-only file system, a full disk, no permission
+            raise InputError(location_name(out), None, f"cannot write ({exc.strerror or exc})") from None
+        if compute is None:
+            compute = PriorCompute(rig, config)
+        writer = SceneWriter(out, scene, storage_options, expect=parts["fingerprint"])
+        tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
+        workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
+        bar = progress(range(len(tasks)), desc=f"priors {scene}", total=len(tasks), enabled=show_progress)
+        run = _Run(start, bar, plan.frame_ids, on_warning, strict)
+        used = 0
+        try:
+            if tasks and engine == "ray":
+                used = _run_ray(tasks, compute, writer, workers, ray_address, run.on_done)
+            elif tasks:
+                used = max(1, min(workers, len(tasks)))
+                _run_local(tasks, compute, writer, used, run.on_done)
+        finally:
+            run.bar.close()
+    return BuildReport(
+        location=location_name(out), scene=scene, fingerprint=parts["fingerprint"],
+        frames_total=len(plan.frame_ids), frames_built=run.built, frames_already_done=plan.already_done,
+        valid_pixels=run.pixels, seconds=time.perf_counter() - start, workers=used, engine=engine,
+        frame_seconds=run.stamps, warnings=run.warnings, frames_repaired=dict(plan.damaged), locked=bool(locked),
+    )
 
-    def on_done(result: tuple) -> None:
-        nonlocal built, pixels
+
+class _Run:
+    """Progress of one build: frames built, pixels, completion times, warnings; raises a worker's input error."""
+
+    def __init__(self, start: float, bar: Any, frame_ids: list[str],
+                 on_warning: Callable[[str, str], None] | None, strict: bool):
+        self.start, self.bar, self.frame_ids = start, bar, frame_ids
+        self.on_warning, self.strict = on_warning, strict
+        self.built, self.pixels = 0, 0
+        self.stamps: list[float] = []
+        self.warnings: list[tuple[str, str]] = []
+
+    def on_done(self, result: tuple) -> None:
+        """Account one finished frame."""
         index, count, error, warning = result
         if error is not None:
             raise InputError(*error)
         if warning:
-            _note_warning(plan.frame_ids[index], warning, warnings, on_warning, strict)
-        built += 1
-        pixels += count
-        stamps.append(time.perf_counter() - start)
-        bar.update(1)
-
-    used = 0
-    try:
-        if tasks and engine == "ray":
-            used = _run_ray(tasks, compute, writer, workers, ray_address, on_done)
-        elif tasks:
-            used = max(1, min(workers, len(tasks)))
-            _run_local(tasks, compute, writer, used, on_done)
-    finally:
-        bar.close()
-    return BuildReport(
-        location=location_name(out),
-        scene=scene,
-        fingerprint=parts["fingerprint"],
-        frames_total=len(plan.frame_ids),
-        frames_built=built,
-        frames_already_done=plan.already_done,
-        valid_pixels=pixels,
-        seconds=time.perf_counter() - start,
-        workers=used,
-        engine=engine,
-        frame_seconds=stamps,
-        warnings=warnings,
-    )
+            _note_warning(self.frame_ids[index], warning, self.warnings, self.on_warning, self.strict)
+        self.built += 1
+        self.pixels += count
+        self.stamps.append(time.perf_counter() - self.start)
+        self.bar.update(1)
 
 
 def usable_cpus() -> int:

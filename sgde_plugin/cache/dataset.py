@@ -18,7 +18,7 @@ from torch.utils.data import Dataset
 
 from ..errors import InputError
 from .resample import as_affine, resize_matrix, warp_depth, warp_image
-from .store import PriorCache
+from .store import PriorCache, check_size
 
 IdaSpec = np.ndarray | Callable[[str, str, tuple[int, int], tuple[int, int]], np.ndarray] | None
 
@@ -48,11 +48,11 @@ class PriorDataset(Dataset):
         check_rig: bool = True,
         scene: str | None = None,
     ):
+        self.size = check_size(size)  # (0, 0) and the like: a clear ValueError before any work
         self.rig = rig
         self.cache = cache if isinstance(cache, PriorCache) else PriorCache(cache, scene=scene)
         if check_rig:
             self.cache.check(rig=rig)
-        self.size = (int(size[0]), int(size[1]))
         self.cameras = list(cameras) if cameras is not None else list(rig.camera_names)
         missing = [c for c in self.cameras if c not in self.cache.cameras()]
         if missing:

@@ -7,7 +7,10 @@ from typing import Any
 
 import numpy as np
 
-from .store import list_scenes, location_name, open_root, open_store, scene_arrays, store_keys
+from .backends import location_name, open_root, open_store, store_keys
+from .fingerprints import CACHE_FORMAT, digest
+from .layout import frame_problems, missing_shards, open_arrays, read_counts, scene_groups, scene_problems
+from .store import list_scenes, scene_arrays
 
 
 def cache_info(location: Any, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -19,7 +22,12 @@ def cache_info(location: Any, storage_options: Mapping[str, Any] | None = None) 
     total_bytes = sum(keys.values())
     scenes, cameras = [], {}
     for name in list_scenes(location, storage_options):
-        arrays = scene_arrays(location, name, storage_options)
+        try:
+            arrays = scene_arrays(location, name, storage_options)
+        except Exception as exc:  # noqa: BLE001 - a damaged scene is reported, `cache verify` names it
+            scenes.append({"scene": name, "frames_done": 0, "frames_total": 0,
+                           "note": f"damaged ({type(exc).__name__}): see `sgde cache verify`"})
+            continue
         attrs = arrays["attrs"]
         if not attrs.get("ready"):
             scenes.append({"scene": name, "frames_done": 0, "frames_total": 0, "note": "creation interrupted"})
@@ -72,71 +80,62 @@ def _problem(scene: str, frame: str, camera: str, array: str, problem: str) -> d
     return {"scene": scene, "frame": frame, "camera": camera, "array": array, "problem": problem}
 
 
-def _read_check(array: Any, index: tuple[int, ...]) -> tuple[np.ndarray | None, str | None]:
-    try:
-        return np.asarray(array[index]), None
-    except Exception as exc:  # noqa: BLE001 - any decoding failure is a finding, not a crash
-        text = str(exc).split("\n")[0]
-        if "checksum" in text.lower():
-            return None, "checksum mismatch (corrupted or truncated)"
-        return None, f"unreadable ({type(exc).__name__}: {text})"
+def _root_problems(root: Any, names: list[str], broken: Mapping[str, str]) -> list[dict[str, str]]:
+    """Problems of the cache as a whole: root attributes, no scene at all, scenes that do not open."""
+    out = [_problem(name, "-", "-", "zarr.json", why) for name, why in broken.items()]
+    rattrs = dict(root.attrs)
+    if rattrs.get("format") != CACHE_FORMAT:
+        out.append(_problem("-", "-", "-", "zarr.json", f"format is {rattrs.get('format')!r}, not {CACHE_FORMAT!r}"))
+    elif "config" in rattrs and digest(rattrs["config"]) != rattrs.get("config_fingerprint"):
+        out.append(_problem("-", "-", "-", "zarr.json", "the config document does not match config_fingerprint"))
+    if not names and not out:
+        out.append(_problem("-", "-", "-", "-", "the cache holds no scene"))
+    return out
 
 
 def verify_cache(location: Any, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """Read every chunk of every scene; problems are named by scene, frame and camera. A frame that
-    is not built yet is a problem too (the cache is incomplete)."""
-    problems: list[dict[str, Any]] = []
-    chunks = 0
-    frames_checked = 0
-    for name in list_scenes(location, storage_options):
-        arrays = scene_arrays(location, name, storage_options)
-        attrs = arrays["attrs"]
-        if not attrs.get("ready"):
-            problems.append(_problem(name, "-", "-", "-", "scene creation was interrupted (run the build again)"))
-            continue
-        ids = list(attrs["frame_ids"])
-        if min(arrays[a].shape[0] for a in ("depth", "confidence", "valid_pixels")) < len(ids):
-            problems.append(_problem(name, "-", "-", "-", "arrays shorter than the frame list (run the build again)"))
-            continue
-        for fi, fid in enumerate(ids):
-            counts, err = _read_check(arrays["valid_pixels"], (fi,))
-            chunks += 1
-            if err is not None or counts[0] < 0:
-                problems.append(_problem(name, fid, "*", "valid_pixels", err or "not built yet"))
-                continue
-            frames_checked += 1
-            for ci, cam in enumerate(attrs["cameras"]):
-                chunks += 2
-                for p in _check_image(arrays, fi, ci, cam, int(counts[ci])):
-                    problems.append(_problem(name, fid, cam["name"], *p))
+    """Read every chunk of every array of every scene and check the scene attributes against the arrays;
+    problems are named by scene, frame and camera. A frame not built yet is a problem (incomplete cache)."""
+    store = open_store(location, read_only=True, storage_options=storage_options)
+    root = open_root(store, location, "r")
+    groups, broken = scene_groups(store, root)
+    problems = _root_problems(root, list(groups), broken)
+    tally = {"chunks": 0, "frames": 0}
+    for name, group in groups.items():
+        problems += _verify_scene(store, group, name, tally)
     return {
         "location": location_name(location),
         "ok": not problems,
-        "chunks_read": chunks,
-        "frames_checked": frames_checked,
+        "chunks_read": tally["chunks"],
+        "frames_checked": tally["frames"],
         "problems": problems,
     }
 
 
-def _check_image(arrays: Mapping[str, Any], fi: int, ci: int, cam: Mapping[str, Any], count: int) -> list[tuple]:
-    """Problems (array, text) of one camera image of one frame."""
+def _verify_scene(store: Any, group: Any, name: str, tally: dict[str, int]) -> list[dict[str, str]]:
+    """Problems of one scene; `tally` counts chunks read and frames checked."""
+    attrs = dict(group.attrs)
+    if not attrs.get("ready"):
+        return [_problem(name, "-", "-", "-", "scene creation was interrupted (run the build again)")]
+    arrays, texts = open_arrays(group)
+    texts += scene_problems(attrs, arrays)
+    if texts:
+        return [_problem(name, "-", "-", "attributes", t) for t in texts]
+    ids, cams = list(attrs["frame_ids"]), attrs["cameras"]
+    counts, unreadable = read_counts(arrays["valid_pixels"], len(ids))
+    tally["chunks"] += len(ids)
     out = []
-    depth, err_d = _read_check(arrays["depth"], (fi, ci))
-    conf, err_c = _read_check(arrays["confidence"], (fi, ci))
-    if err_d:
-        out.append(("depth", err_d))
-    if err_c:
-        out.append(("confidence", err_c))
-    if depth is None:
-        return out
-    inside = depth[: cam["height"], : cam["width"]]
-    valid = int((inside > 0).sum())
-    if valid != count:
-        out.append(("depth", f"{valid} valid pixels read, {count} written (data lost)"))
-    if not np.all(np.isfinite(inside)) or (inside < 0).any():
-        out.append(("depth", "non-finite or negative depths"))
-    if conf is not None and (conf[: cam["height"], : cam["width"]][inside <= 0] != 0).any():
-        out.append(("confidence", "confidence where there is no depth"))
+    missing = missing_shards(store, arrays, counts)
+    for fi, fid in enumerate(ids):
+        if fi in unreadable or counts[fi, 0] < 0:
+            why = "done marker unreadable (checksum or decoding)" if fi in unreadable else "not built yet"
+            out.append(_problem(name, fid, "*", "valid_pixels", why))
+            continue
+        tally["frames"] += 1
+        tally["chunks"] += 2 * len(cams)
+        if fi in missing:
+            out.append(_problem(name, fid, "*", missing[fi].split()[0], missing[fi]))
+        out += [_problem(name, fid, cam, array, p) for cam, array, p in frame_problems(arrays, cams, fi, counts[fi])]
     return out
 
 

@@ -1,4 +1,4 @@
-"""`sgde bench [NAME ...] [--json OUT] [--fast]`: run the benchmark suite and describe the machine."""
+"""`sgde bench [NAME ...] [--json OUT] [--fast] [--supervision {lidar,self}]`: run benchmarks, describe the machine."""
 
 from __future__ import annotations
 
@@ -39,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--peer", choices=("colmap",), default=None,
                         help="calibrate: GLC against COLMAP's rig bundle adjustment on the presets and random rigs "
                              "(needs the extra `peer`: pycolmap)")
+    parser.add_argument("--supervision", choices=("lidar", "self"), default="lidar",
+                        help="train-effect: LiDAR-like supervision (default) or self-supervised view synthesis")
     parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
                         help="`real` only: another pose source (sgde-rig/1 extrinsics, e.g. a calibration); repeatable")
 
@@ -98,8 +100,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"== {n}", flush=True)
         try:
             module = importlib.import_module(f"sgde_plugin.benchmarks.{BENCHMARKS[n]}")
-            peer = {"peer": args.peer} if n == "calibrate" and getattr(args, "peer", None) else {}
-            result = module.run(fast=args.fast, **peer)
+            options = {"supervision": args.supervision} if n == "train-effect" else {}
+            if n == "calibrate" and getattr(args, "peer", None):
+                options = {"peer": args.peer}
+            result = module.run(fast=args.fast, **options)
         except ModuleNotFoundError as exc:
             result = {"error": f"not available: {exc}"}
             failed += 1

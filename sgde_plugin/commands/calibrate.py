@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .options import integer, number
+
 HELP = "refine the extrinsics of a rig folder (GLC bundle adjustment) and write an sgde-rig/1 file"
 
 METHODS = ("glc", "wo-glc", "pairwise", "none")
@@ -19,15 +21,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher", choices=("sift", "loftr"), default="sift", help="feature matcher (default sift)")
     parser.add_argument("--loftr-weights", default=None, metavar="CKPT",
                         help="local LoFTR checkpoint for --matcher loftr (nothing is downloaded)")
-    parser.add_argument("--window", type=int, default=7,
+    parser.add_argument("--window", type=integer(1, 100000), default=7,
                         help="frames per calibration window T (default 7); the frames are split into consecutive "
                              "windows and a rejected window keeps the last accepted calibration")
-    parser.add_argument("--beta", type=int, default=None,
+    parser.add_argument("--beta", type=integer(0, 10**9), default=None,
                         help="minimum verified inliers per observation pair, i.e. per two images (default 15 with "
                              "sift; with loftr the paper's 200 DDAD, 50 nuScenes); a camera pair without one is "
                              "constrained through the ring")
-    parser.add_argument("--alpha", type=float, default=0.3, help="largest accepted relative translation change, m")
-    parser.add_argument("--max-iterations", type=int, default=200,
+    parser.add_argument("--alpha", type=number(0, 1e3, lo_open=True), default=0.3,
+                        help="largest accepted relative translation change, m")
+    parser.add_argument("--max-iterations", type=integer(1, 10**6), default=200,
                         help="iteration limit of the adjustment; a window that needs more is rejected (default 200)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",

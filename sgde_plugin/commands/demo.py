@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .options import integer, number
+
 HELP = "synthesise a rig, calibrate it, build and evaluate priors, train, export; writes DIR/report.md"
 
 
@@ -13,13 +15,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     d = DemoSettings()
     parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
-    parser.add_argument("--frames", type=int, default=d.frames,
+    parser.add_argument("--frames", type=integer(2, 10000), default=d.frames,
                         help=f"frames of the synthetic sequence (default {d.frames})")
-    parser.add_argument("--scale", type=float, default=d.scale,
+    parser.add_argument("--scale", type=number(0.1, 1.0), default=d.scale,
                         help=f"image scale of the 1600x900 rig (default {d.scale})")
-    parser.add_argument("--steps", type=int, default=d.train_steps,
+    parser.add_argument("--steps", type=integer(0, 10**7), default=d.train_steps,
                         help=f"training steps per network arm (default {d.train_steps})")
-    parser.add_argument("--seed", type=int, default=d.seed, help=f"scene seed (default {d.seed})")
+    parser.add_argument("--seed", type=integer(0, 2**32 - 1), default=d.seed, help=f"scene seed (default {d.seed})")
 
 
 def run(args: argparse.Namespace) -> int:

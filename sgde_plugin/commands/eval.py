@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .options import number
+
 HELP = "evaluate cached depth priors against the rig folder's ground truth (accuracy and overlap coverage)"
 
 
@@ -17,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--truth", help="sgde-rig/1 file with the TRUE extrinsics that define the overlap (default: "
         "DIR/rig_true.json when present, else DIR's own rig)",
     )
-    parser.add_argument("--max-depth", type=float, default=80.0, help="ground truth beyond this is ignored (80 m)")
+    parser.add_argument("--max-depth", type=number(0, 1e4, lo_open=True), default=80.0,
+                        help="ground truth beyond this is ignored (80 m)")
 
 
 def _truth_rig(rig, dir_arg: str, truth: str | None):
@@ -54,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.dir)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
+    cache.check_frames(rig)  # the priors of another scene whose frames share ids are refused
     cached_cams = set(cache.cameras())
     missing = [c for c in rig.camera_names if c not in cached_cams]
     if missing:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .options import integer
+
 HELP = "export the R18 depth net or the BEVDepth-style depth branch to ONNX (optionally checked)"
 
 
@@ -16,6 +18,16 @@ def _size(text: str) -> tuple[int, int]:
     if h <= 0 or w <= 0:
         raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
     return h, w
+
+
+def _max_opset() -> int:
+    """The highest opset the installed torch's (TorchScript) ONNX exporter writes."""
+    try:
+        from torch.onnx import _constants
+
+        return int(getattr(_constants, "ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET", 20))
+    except ImportError:  # pragma: no cover - torch without onnx support
+        return 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,8 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(checked against fp32 torch within 1e-2 x output range + 1e-2 relative)")
     parser.add_argument("--image-size", type=_size, metavar="HxW", help="image size (r18 default 384x640, "
                         "bevdepth default 256x704 -> features at stride 16)")
-    parser.add_argument("--cams", type=int, default=6, help="cameras per sample for bevdepth example inputs")
-    parser.add_argument("--opset", type=int, default=17, help="ONNX opset (>= 17)")
+    parser.add_argument("--cams", type=integer(1, 64), default=6, help="cameras per sample for bevdepth example inputs")
+    parser.add_argument("--opset", type=integer(17, 10**6), default=17, help="ONNX opset (>= 17)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,8 +55,9 @@ def run(args: argparse.Namespace) -> int:
     from ..export.parity import ParityError
     from ..export.workflow import export_spec
 
-    if args.opset < 17:
-        raise InputError(None, "--opset", f"must be >= 17, got {args.opset}")
+    top = _max_opset()
+    if not 17 <= args.opset <= top:
+        raise InputError(None, "--opset", f"must be between 17 and {top} (this torch's exporter), got {args.opset}")
     if args.cams < 1:
         raise InputError(None, "--cams", f"must be >= 1, got {args.cams}")
     kwargs = {} if args.image_size is None else {"image_size": args.image_size}

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from .options import integer, number
+
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
 
@@ -42,7 +44,7 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("max_elevation_deg", "float", "rectified canvas half-angle, degrees (50)"),
     ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
 ]
-OPTION_TYPES = {"int": int, "float": float, "str": str}
+OPTION_TYPES = {"int": int, "float": number(), "str": str}  # floats: finite (NaN and inf refused)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,12 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.add_argument("--matcher-option", dest="matcher_options", action="append", metavar="KEY=VALUE",
                           help="learned matchers: factory keyword / RAFT-Stereo argument (YAML value), repeatable; "
                           "e.g. --matcher-option n_downsample=3")
-    parser.add_argument("--workers", type=int, default=None,
+    parser.add_argument("--workers", type=integer(0, 4096), default=None,
                         help="parallel worker processes (default: all CPUs; learned matchers: as memory allows)")
     parser.add_argument("--engine", choices=("local", "ray"), default="local", help="local processes or Ray actors")
     parser.add_argument("--ray-address", help="Ray cluster address (default: start a local Ray instance)")
     parser.add_argument("--scene", help="scene (zarr group) name in the cache (default: from the rig or DIR)")
     parser.add_argument("--strict", action="store_true", help="exit 3 as soon as a frame's prior comes out empty")
+    parser.add_argument("--repair", action="store_true", help="read every chunk of the cached frames and rebuild "
+                        "the damaged ones (a resume always rebuilds frames whose shards are missing)")
+    parser.add_argument("--wait", type=number(0, 86400), default=0.0, metavar="SECONDS",
+                        help="wait this long for another build writing the same cache (default: refuse at once)")
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:
@@ -140,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         report = build_cache(
             rig, args.out, config, workers=workers, engine=args.engine, scene=str(scene), ray_address=args.ray_address,
-            on_warning=warn, strict=args.strict,
+            on_warning=warn, strict=args.strict, repair=args.repair, wait_s=args.wait,
         )
     except StrictWarningError:
         print("sgde prior: stopped (--strict): a frame's prior came out empty", file=sys.stderr)

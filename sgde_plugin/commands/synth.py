@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..errors import InputError
+from .options import integer, number
 
 HELP = ("render a synthetic street sequence (nuscenes, ddad, urban-fisheye or a random rig of the seed) into an "
         "sgde-rig/1 folder")
@@ -19,11 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="camera rig (random: 4-8 cameras drawn from --seed)")
     parser.add_argument("--frames", required=True, type=int, help="number of frames (10 Hz)")
     parser.add_argument("--out", required=True, help="output folder (must not exist or be empty)")
-    parser.add_argument("--seed", type=int, default=0, help="scene and calibration-noise seed (default 0)")
-    parser.add_argument("--scale", type=float, default=1.0, help="image size factor (default 1)")
-    parser.add_argument("--pose-noise-deg", type=float, default=1.0,
+    parser.add_argument("--seed", type=integer(0, 2**32 - 1), default=0,
+                        help="scene and calibration-noise seed (default 0)")
+    parser.add_argument("--scale", type=number(0, 4, lo_open=True), default=1.0, help="image size factor (default 1)")
+    parser.add_argument("--pose-noise-deg", type=number(0, 180), default=1.0,
                         help="rotation error of each camera in rig.json, degrees (default 1)")
-    parser.add_argument("--pose-noise-m", type=float, default=0.05,
+    parser.add_argument("--pose-noise-m", type=number(0, 100), default=0.05,
                         help="translation error of each camera in rig.json, metres (default 0.05)")
     parser.add_argument("--supersample", type=int, default=1, help="k x k colour samples per pixel (default 1)")
     parser.add_argument("--capture", choices=("sync", "sequential"), default="sync",
@@ -41,6 +43,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out, "--out", "exists and is not an empty folder")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise InputError(out, "--out", f"{blocking} is a file, not a folder")
     if not 1 <= args.frames <= MAX_FRAMES:
         raise InputError(None, "--frames", f"must be between 1 and {MAX_FRAMES}")
     if not 0 < args.scale <= 4:

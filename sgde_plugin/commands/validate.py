@@ -10,6 +10,8 @@ HELP = "check a rig folder (sgde-rig/1 or a supported data set); exit 0 if valid
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `sgde validate`."""
     parser.add_argument("dir", help="rig folder or data-set root")
+    parser.add_argument("--quick", action="store_true",
+                        help="check image headers (sizes) only, instead of decoding every image, depth map and mask")
 
 
 def camera_rows(rig) -> list[dict]:
@@ -52,12 +54,27 @@ def pair_rows(rig) -> list[dict]:
     ]
 
 
+def image_files(rig) -> list:
+    """Every image, depth map and mask file the rig refers to, in frame order."""
+    files = []
+    for frame in rig.frames:
+        files += [frame.images[c] for c in rig.camera_names if c in frame.images]
+        files += [p for c, p in frame.depths.items() if str(p).lower().endswith((".png", ".jpg", ".jpeg"))]
+    return files + [rig.masks[c] for c in rig.camera_names if c in rig.masks]
+
+
 def run(args: argparse.Namespace) -> int:
-    """Validate, then print the tables."""
+    """Validate (decoding every image unless --quick), then print the tables."""
+    from ..io import decode_check
+    from ..progress import progress
     from ..readers.detect import load_rig
     from ..tables import format_table
 
     rig = load_rig(args.dir, check_images=True)
+    if not args.quick:
+        files = image_files(rig)
+        for path in progress(files, desc="decoding images", total=len(files)):
+            decode_check(path)
     print(f"{args.dir}: valid, {len(rig.cameras)} cameras, {len(rig.pairs)} adjacent pairs, {len(rig.frames)} frames")
     print()
     print(format_table(camera_rows(rig), digits=2))

@@ -21,10 +21,11 @@ LIDAR_RANGE_M = 70.0
 class RigSequence:
     """Frames of a surround rig at network resolution; arrays are [frames, cameras, H, W(, 3)].
 
-    The optional temporal fields serve self-supervised training: ``ego_to_world`` [F,4,4] is each
-    frame's ego pose, ``context_images`` [F,2,N,H,W,3] the images of the instants just before (index 0)
-    and after (index 1) each frame, ``context_ego_to_world`` [F,2,4,4] their ego poses, and
-    ``masks`` [N,H,W] bool the static per-camera masks (False = ego body, ignore).
+    The optional fields serve self-supervised training: ``camera_to_world`` [F,N,4,4] is each camera's
+    pose in the world at its own capture (`Rig.capture(...).camera_to_world`), ``context_images``
+    [F,2,N,H,W,3] the images of the instants just before (index 0) and after (index 1) each frame,
+    ``context_camera_to_world`` [F,2,N,4,4] their camera poses, and ``masks`` [N,H,W] bool the static
+    per-camera masks (False = ego body, ignore).
     """
 
     cameras: list[Camera]
@@ -37,9 +38,9 @@ class RigSequence:
     overlap: np.ndarray  # bool: pixel seen by an adjacent camera (true geometry)
     scene_source: str = ""
     prior_source: str = ""
-    ego_to_world: np.ndarray | None = None
+    camera_to_world: np.ndarray | None = None
     context_images: np.ndarray | None = None
-    context_ego_to_world: np.ndarray | None = None
+    context_camera_to_world: np.ndarray | None = None
     masks: np.ndarray | None = None
 
 

@@ -3,6 +3,8 @@
 An *arm* is one way of using the prior (none, as input, as L1 supervision, both); every arm of a
 comparison starts from the same initial weights (`arm_nets`) and is trained by `train_arm` with the
 same seed, data order and budget, then scored by `evaluate` on held-out frames of a `RigSequence`.
+Supervision is LiDAR-like sparse depth, or self-supervised view synthesis (`SelfSupervision`: the
+temporal neighbours of each frame and the adjacent cameras of the same capture, `nn.photometric`).
 """
 
 from __future__ import annotations
@@ -17,10 +19,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..cameras import CameraModel
 from ..geometry import invert_transform
 from ..metrics import average_metrics, dep_con_terms, depth_metrics
 from .depthnet import DepthNet
-from .losses import DEFAULT_WEIGHT, PriorL1Loss
+from .losses import DEFAULT_WEIGHT, PriorL1Loss, depth_rays
+from .photometric import PhotometricConfig, PhotometricLoss, SourceView
 from .sequence import RigSequence
 
 MAX_DEPTH_EVAL = 80.0  # nuScenes evaluation cap
@@ -87,9 +91,68 @@ def prior_term(out: dict, prior: Tensor, valid: Tensor, scales: tuple[int, ...],
     return sum(loss(out[("depth", s)], prior, valid) for s in scales) / len(scales)
 
 
+class SelfSupervision:
+    """Self-supervised view-synthesis loss of one rig frame (all cameras in one batch) of a `RigSequence`.
+
+    Each camera's depth is scored by warping its temporal neighbours (the same camera at the context
+    instants before and after, `seq.context_images`) and its adjacent cameras of the same capture
+    (`seq.pairs`) into it, with the poses of `seq.camera_to_world` / `seq.context_camera_to_world`
+    (each camera's pose at its own capture time); `seq.masks` are honoured.
+    """
+
+    def __init__(self, seq: RigSequence, config: PhotometricConfig | None = None) -> None:
+        config = config or PhotometricConfig()
+        if seq.camera_to_world is None or (config.temporal and seq.context_images is None):
+            raise ValueError("self-supervision needs camera_to_world (and context images for temporal sources)")
+        self.seq, self.loss = seq, PhotometricLoss(config)
+        self.models: list[CameraModel] = [c.intrinsics for c in seq.cameras]
+        self.rays = torch.cat([depth_rays(m) for m in self.models])
+        names = [c.name for c in seq.cameras]
+        self.neighbours: list[list[int]] = [[] for _ in names]
+        for a, b in seq.pairs:
+            self.neighbours[names.index(a)].append(names.index(b))
+            self.neighbours[names.index(b)].append(names.index(a))
+        n, (h, w) = len(names), seq.images.shape[2:4]
+        self.masks = torch.ones(n, 1, h, w, dtype=torch.bool) if seq.masks is None else \
+            torch.from_numpy(seq.masks)[:, None].to(torch.bool)
+
+    def _pose(self, source_to_world: np.ndarray, target_to_world: np.ndarray) -> Tensor:
+        return torch.from_numpy(invert_transform(source_to_world) @ target_to_world).float()
+
+    def sources(self, k: int, rgb: Tensor) -> list[SourceView]:
+        """Source views of every camera in frame ``k``; ``rgb`` [N,3,H,W] the frame's images."""
+        seq, n = self.seq, len(self.models)
+        out = []
+        if self.loss.config.temporal:
+            for j in range(seq.context_images.shape[1]):
+                image = torch.from_numpy(seq.context_images[k, j]).float().div(255).permute(0, 3, 1, 2)
+                poses = torch.stack([self._pose(seq.context_camera_to_world[k, j, i], seq.camera_to_world[k, i])
+                                     for i in range(n)])
+                out.append(SourceView(image, self.models, poses, True, self.masks))
+        if self.loss.config.spatial:
+            for slot in range(max(len(nb) for nb in self.neighbours)):
+                # camera i's slot-th neighbour; a camera with fewer neighbours gets an all-False mask
+                src = [nb[slot] if slot < len(nb) else i for i, nb in enumerate(self.neighbours)]
+                poses = torch.stack([self._pose(seq.camera_to_world[k, j], seq.camera_to_world[k, i])
+                                     for i, j in enumerate(src)])
+                present = torch.tensor([slot < len(nb) for nb in self.neighbours])[:, None, None, None]
+                out.append(SourceView(rgb[src], [self.models[j] for j in src], poses, False,
+                                      self.masks[src] & present))
+        return out
+
+    def __call__(self, out: dict, k: int, rgb: Tensor, scales: tuple[int, ...]) -> Tensor:
+        """Photometric loss of frame ``k`` (all cameras) given the net's outputs ``out``."""
+        depths = [out[("depth", s)] for s in scales]
+        return self.loss(depths, rgb, self.rays, self.sources(k, rgb), self.masks)
+
+
 def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: int, seed: int,
-              prior_weight: float | None, lr: float = 2e-4) -> float:
-    """Train in place for `steps` steps of one frame (all cameras); returns seconds spent."""
+              prior_weight: float | None, lr: float = 2e-4, self_supervision: SelfSupervision | None = None) -> float:
+    """Train in place for `steps` steps of one frame (all cameras); returns seconds spent.
+
+    The loss is the LiDAR-like supervised loss, or with ``self_supervision`` the view-synthesis loss;
+    ``prior_weight`` adds lambda * L1(D, D_p).
+    """
     rgb, sup, prior, valid = frame_tensors(seq, train_frames)
     n = len(seq.cameras)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
@@ -100,7 +163,10 @@ def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: i
     for k in order:
         sl = slice(int(k) * n, (int(k) + 1) * n)
         out = net(rgb[sl], prior[sl] if net.use_prior else None, valid[sl] if net.use_prior else None)
-        loss = supervised_loss(out, sup[sl], net.scales)
+        if self_supervision is None:
+            loss = supervised_loss(out, sup[sl], net.scales)
+        else:
+            loss = self_supervision(out, train_frames[int(k)], rgb[sl], net.scales)
         if prior_weight:
             loss = loss + prior_term(out, prior[sl], valid[sl], net.scales, prior_weight)
         opt.zero_grad(set_to_none=True)
@@ -110,15 +176,19 @@ def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: i
     return time.perf_counter() - t0
 
 
-def _pair_dep_con(seq: RigSequence, pred: np.ndarray, gt: np.ndarray) -> tuple[float, int]:
-    """Dep Con sum and count of one frame over all adjacent pairs, both directions."""
+def _pair_dep_con(seq: RigSequence, k: int, pred: np.ndarray, gt: np.ndarray) -> tuple[float, int]:
+    """Dep Con sum and count of frame ``k`` over all adjacent pairs, both directions (relative poses from
+    each camera's capture pose when the sequence has them, else from the extrinsics)."""
     names = [c.name for c in seq.cameras]
     cams = {c.name: c for c in seq.cameras}
     total, count = 0.0, 0
     for a, b in seq.pairs:
         ia, ib = names.index(a), names.index(b)
         for x, y in ((ia, ib), (ib, ia)):
-            rel = invert_transform(cams[names[x]].sensor_to_ego) @ cams[names[y]].sensor_to_ego
+            if seq.camera_to_world is not None:
+                rel = invert_transform(seq.camera_to_world[k, x]) @ seq.camera_to_world[k, y]
+            else:
+                rel = invert_transform(cams[names[x]].sensor_to_ego) @ cams[names[y]].sensor_to_ego
             s, m = dep_con_terms(pred[x], pred[y], gt[x], cams[names[x]], cams[names[y]], rel,
                                  max_depth=MAX_DEPTH_EVAL)
             total, count = total + s, count + m
@@ -126,12 +196,13 @@ def _pair_dep_con(seq: RigSequence, pred: np.ndarray, gt: np.ndarray) -> tuple[f
 
 
 def evaluate(net: DepthNet, seq: RigSequence, frames: list[int], paste_prior: bool = False) -> dict[str, float]:
-    """Per-image depth metrics (dense ground truth <= 80 m), Abs Rel inside / outside the overlap,
-    and Dep Con pooled over all adjacent pairs and frames. ``paste_prior`` replaces the prediction by
-    the prior wherever the prior is valid (the most a purely local use of the prior can give)."""
+    """Per-image depth metrics (dense ground truth <= 80 m), Abs Rel with per-image median scaling,
+    Abs Rel inside / outside the overlap, and Dep Con pooled over all adjacent pairs and frames.
+    ``paste_prior`` replaces the prediction by the prior wherever the prior is valid (the most a purely
+    local use of the prior can give)."""
     net.eval()
     n = len(seq.cameras)
-    rows, inside, outside = [], [], []
+    rows, inside, outside, scaled = [], [], [], []
     dc_sum, dc_n = 0.0, 0
     with torch.no_grad():
         for k in frames:
@@ -143,11 +214,13 @@ def evaluate(net: DepthNet, seq: RigSequence, frames: list[int], paste_prior: bo
             gt = seq.depth[k]
             for i in range(n):
                 rows.append(depth_metrics(pred[i], gt[i], max_depth=MAX_DEPTH_EVAL))
+                scaled.append(depth_metrics(pred[i], gt[i], max_depth=MAX_DEPTH_EVAL, median_scaling=True))
                 inside.append(depth_metrics(pred[i], gt[i], mask=seq.overlap[k, i], max_depth=MAX_DEPTH_EVAL))
                 outside.append(depth_metrics(pred[i], gt[i], mask=~seq.overlap[k, i], max_depth=MAX_DEPTH_EVAL))
-            s, m = _pair_dep_con(seq, pred, gt)
+            s, m = _pair_dep_con(seq, k, pred, gt)
             dc_sum, dc_n = dc_sum + s, dc_n + m
     res = {k: v for k, v in average_metrics(rows).items() if k in ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1")}
+    res["abs_rel_median_scaled"] = average_metrics(scaled)["abs_rel"]
     res["abs_rel_overlap"] = pooled_abs_rel(inside)
     res["abs_rel_outside"] = pooled_abs_rel(outside)
     res["dep_con"] = dc_sum / dc_n if dc_n else math.nan

@@ -1,0 +1,176 @@
+"""Bad input (issue #22, failures 3, 5 and 6): every case is refused with one line on stderr naming the
+file and key (exit code 2), never a traceback, an "internal error" or exit 0 on a wrong result.
+
+Runtime ~15 s on 2 cores (one `sgde export` argument check imports torch; a closed-pipe subprocess).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_cache_store import build, tiny_rig
+from test_rig import make_rig, write_folder
+
+from sgde_plugin.cache.dataset import PriorDataset
+from sgde_plugin.cache.store import PriorCache
+from sgde_plugin.cli import main
+from sgde_plugin.errors import InputError
+from sgde_plugin.io import atomic_write_text
+from sgde_plugin.rig import write_rig_json
+
+
+@pytest.fixture
+def rig_dir(tmp_path: Path) -> Path:
+    root = tmp_path / "rig"
+    write_folder(root, make_rig(frames=1))
+    return root
+
+
+def _edit(root: Path, change) -> None:
+    doc = json.loads((root / "rig.json").read_text())
+    change(doc)
+    (root / "rig.json").write_text(json.dumps(doc))
+
+
+def _rename_camera(doc: dict, new: str) -> None:
+    old = doc["cameras"][1]["name"]
+    doc["cameras"][1]["name"] = new
+    doc["ring"] = [new if n == old else n for n in doc["ring"]]
+
+
+def _pairs(doc: dict, pairs: list) -> None:
+    del doc["ring"]
+    doc["pairs"] = pairs
+
+
+RIG_DEFECTS = {
+    "name_escapes_folder": (lambda d: _rename_camera(d, "../../../x"), "cameras[1].name: '../../../x' is not a plain"),
+    "name_with_newline": (lambda d: _rename_camera(d, "CAM\nX"), "cameras[1].name: 'CAM\\nX' is not a plain"),
+    "ring_of_one": (lambda d: d.update(ring=["CAM_FRONT"]), "ring: needs at least two cameras"),
+    "no_pairs": (lambda d: _pairs(d, []), "pairs: lists no pair"),
+    "pair_twice": (lambda d: _pairs(d, [["CAM_FRONT", "CAM_BACK"], ["CAM_BACK", "CAM_FRONT"]]),
+                   "pairs[1]: repeats the pair"),
+    "absurd_K": (lambda d: d["cameras"][0]["K"][0].__setitem__(0, 1e308), "cameras[CAM_FRONT].K: has an absurd"),
+    "absurd_mount": (lambda d: d["cameras"][0]["sensor_to_ego"][0].__setitem__(3, 1e6),
+                     "cameras[CAM_FRONT].sensor_to_ego: translation of 1e+06 m is absurd"),
+    "frame_id_dots": (lambda d: d["frames"][0].update(id=".."), "frames[0].id: missing or not a plain file name"),
+}
+
+
+def _one_line(capsys, code: int = 2) -> str:
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err and "internal error" not in err, err
+    return lines[0]
+
+
+@pytest.mark.parametrize("defect", sorted(RIG_DEFECTS))
+def test_degenerate_or_unsafe_rigs_are_refused(defect, rig_dir, capsys):
+    change, expected = RIG_DEFECTS[defect]
+    _edit(rig_dir, change)
+    assert main(["validate", str(rig_dir)]) == 2
+    line = _one_line(capsys)
+    assert expected in line and str(rig_dir / "rig.json") in line
+
+
+def _png(root: Path) -> Path:
+    return root / "frames" / "000000" / "CAM_BACK.png"
+
+
+def test_validate_decodes_every_image_and_quick_reads_headers(rig_dir, capsys):
+    data = _png(rig_dir).read_bytes()
+    _png(rig_dir).write_bytes(data[: len(data) // 2])
+    assert main(["validate", str(rig_dir), "--quick"]) == 0  # the header is intact
+    capsys.readouterr()
+    assert main(["validate", str(rig_dir)]) == 2
+    assert _one_line(capsys).endswith("CAM_BACK.png: truncated PNG (no IEND chunk)")
+    corrupt = bytearray(data)
+    corrupt[len(data) // 2] ^= 0xFF  # inside the pixel data: the chunk's CRC no longer matches
+    _png(rig_dir).write_bytes(bytes(corrupt))
+    assert main(["validate", str(rig_dir)]) == 2
+    assert "CAM_BACK.png: cannot decode image" in _one_line(capsys)
+    _png(rig_dir).unlink()
+    _png(rig_dir).mkdir()  # a folder where the image belongs
+    assert main(["validate", str(rig_dir)]) == 2
+    assert "CAM_BACK.png: cannot read" in _one_line(capsys)
+
+
+def test_deeply_nested_json_is_one_line(rig_dir, capsys):
+    (rig_dir / "rig.json").write_text("[" * 100_000 + "]" * 100_000)
+    assert main(["validate", str(rig_dir)]) == 2
+    assert "rig.json" in _one_line(capsys)
+
+
+def test_options_and_output_paths(rig_dir, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    cases = [
+        (["synth", "--preset", "nuscenes", "--frames", "1", "--out", str(tmp_path / "s"), "--pose-noise-deg", "nan"],
+         "argument --pose-noise-deg: must be a finite number"),
+        (["eval", str(rig_dir), "--cache", str(tmp_path / "c"), "--max-depth", "-1"],
+         "argument --max-depth: must be in (0, 10000]"),
+        (["prior", str(rig_dir), "--out", str(rig_dir), "--scale", "inf"], "argument --scale"),
+        (["prior", str(rig_dir), "--out", str(afile), "--workers", "1"], "exists and is not a folder"),
+        (["synth", "--preset", "nuscenes", "--frames", "1", "--out", str(afile / "sub")], "afile is a file"),
+        (["export", "onnx", "--model", "r18", "--out", str(tmp_path / "m.onnx"), "--opset", "99"],
+         "--opset: must be between 17 and"),
+        (["cache", "info", "nosuchprotocol://x"], "unsupported cache location"),
+        (["calibrate", str(rig_dir), "--out", "x.json", "--alpha", "nan"], "argument --alpha"),
+    ]
+    for argv, expected in cases:
+        assert main(argv) == 2, argv
+        assert expected in _one_line(capsys), argv
+
+
+def test_outputs_that_cannot_be_written_are_named(tmp_path):
+    (tmp_path / "d").mkdir()
+    with pytest.raises(InputError, match="is a folder"):  # calibrate --out DIR, eval --json DIR
+        atomic_write_text(tmp_path / "d", "x")
+    with pytest.raises(InputError, match="cannot write"):
+        write_rig_json(make_rig(1), tmp_path / "afile" / "rig.json") if (tmp_path / "afile").write_text("x") else None
+
+
+def test_damaged_cache_metadata_is_one_line(tmp_path, capsys):
+    out = tmp_path / "c"
+    build(tiny_rig(2), out, scene="s")
+    (out / "zarr.json").write_text("{ corrupted")
+    assert main(["cache", "info", str(out)]) == 2
+    assert "zarr.json: not a prior cache" in _one_line(capsys)
+
+
+def test_priors_of_another_scene_are_refused(tmp_path):
+    rig = tiny_rig(3)
+    out = tmp_path / "c"
+    build(rig, out, scene="s")
+    cache = PriorCache(out)
+    cache.check_frames(rig)  # its own rig passes
+    moved = np.eye(4)
+    moved[0, 3] = 5.0  # same ids and timestamps, another drive
+    other = dataclasses.replace(rig, frames=tuple(dataclasses.replace(f, ego_to_world=moved) for f in rig.frames))
+    with pytest.raises(InputError, match=r"s: frames\[000000\]: was built from other images, poses"):
+        cache.check_frames(other)
+    with pytest.raises(InputError, match="images or poses differ"):
+        build(other, out, scene="s")  # nor are they mixed into it
+
+
+def test_api_misuse_of_sizes_is_a_clear_error(tmp_path):
+    rig = tiny_rig(1)
+    build(rig, tmp_path / "c", scene="s")
+    with pytest.raises(ValueError, match=r"size must be two positive integers \(height, width\), got \(0, 0\)"):
+        PriorCache(tmp_path / "c").get("000000", "A", size=(0, 0))
+    with pytest.raises(ValueError, match="size must be two positive integers"):
+        PriorDataset(rig, tmp_path / "c", size=(0, 0))
+
+
+def test_a_closed_pipe_ends_quietly(rig_dir):
+    proc = subprocess.Popen([sys.executable, "-m", "sgde_plugin.cli", "validate", str(rig_dir)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # like `| head` that has already exited
+    err = proc.stderr.read().decode()
+    assert proc.wait(120) == 141 and err == ""
