@@ -510,32 +510,8 @@ def adjust(
     sensor_to_ego = np.asarray(sensor_to_ego, dtype=np.float64)
     ego_to_world = np.asarray(ego_to_world, dtype=np.float64)
     if ego_to_world.ndim == 4 and (start is None or start.state is None) and cfg.max_iterations > 1:
-        # per-camera capture: the ego motion between captures is turned into the reference camera's frame
-        # with its mount; a first solve estimates the mount's orientation (through G), a second uses it
-        first = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
-                       replace(cfg, max_iterations=cfg.max_iterations // 2), start=None, start_points=None)
-        again = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
-                       replace(cfg, max_iterations=cfg.max_iterations - first.iterations), start=first)
-        again.iterations += first.iterations
-        again.initial_rms_px = first.initial_rms_px
-        return again
-    n_points = int(obs.point.max()) + 1 if len(obs) else 0
-    mount = None
-    if ego_to_world.ndim == 4 and start is not None and start.state is not None:
-        mount = sensor_to_ego[reference].copy()
-        mount[:3, :3] = ego_to_world[0, reference, :3, :3].T @ start.state.G.T  # ego-world -> camera at frame 0
-    prob = _Problem(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, capture_mount=mount)
-    if start is not None and start.state is not None:
-        st = start.state.copy()
-        if start_points is not None:
-            st.subset(start_points)
-    else:
-        st = prob.initial_state(n_points)
-        cap = capture_offsets(sensor_to_ego, ego_to_world, reference)
-        ego_local = np.einsum("tij,tmjk,kl->tmil", make_transform(st.R_t, st.c_t), cap,
-                              invert_transform(sensor_to_ego[reference]))
-        points, anchors, _ = initial_points(sensor_to_ego, ego_local, obs, n_points, cfg.consensus_deg)
-        st.set_points(points, anchors)
+        return _adjust_captured(sensor_to_ego, ego_to_world, obs, focal, reference, cfg)
+    prob, st = _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points)
     r0 = prob.obs_terms(st, jacobians=False) * prob.sigma[:, None]
     initial_rms = float(np.sqrt(np.mean(np.sum(r0 * r0, axis=1)))) if len(obs) else 0.0
     cost = prob.cost(st)
@@ -573,6 +549,44 @@ def adjust(
         final_rms_px=final_rms,
         state=st,
     )
+
+
+def _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points):
+    """The problem and its starting state: a previous result's (warm start), else the initial poses with
+    points triangulated from them. With per-camera capture, a warm start's G gives the reference mount's
+    orientation for the capture offsets."""
+    warm = start is not None and start.state is not None
+    mount = None
+    if ego_to_world.ndim == 4 and warm:
+        mount = sensor_to_ego[reference].copy()
+        mount[:3, :3] = ego_to_world[0, reference, :3, :3].T @ start.state.G.T  # ego-world -> camera at frame 0
+    prob = _Problem(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, capture_mount=mount)
+    if warm:
+        st = start.state.copy()
+        if start_points is not None:
+            st.subset(start_points)
+        return prob, st
+    n_points = int(obs.point.max()) + 1 if len(obs) else 0
+    st = prob.initial_state(n_points)
+    cap = capture_offsets(sensor_to_ego, ego_to_world, reference)
+    ego_local = np.einsum("tij,tmjk,kl->tmil", make_transform(st.R_t, st.c_t), cap,
+                          invert_transform(sensor_to_ego[reference]))
+    points, anchors, _ = initial_points(sensor_to_ego, ego_local, obs, n_points, cfg.consensus_deg)
+    st.set_points(points, anchors)
+    return prob, st
+
+
+def _adjust_captured(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, obs: Observations, focal: np.ndarray,
+                     reference: int, cfg: AdjustConfig) -> AdjustResult:
+    """Per-camera capture: the ego motion between captures is turned into the reference camera's frame with its
+    mount; a first solve estimates the mount's orientation (through G), a second one uses it."""
+    first = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
+                   replace(cfg, max_iterations=cfg.max_iterations // 2))
+    again = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
+                   replace(cfg, max_iterations=cfg.max_iterations - first.iterations), start=first)
+    again.iterations += first.iterations
+    again.initial_rms_px = first.initial_rms_px
+    return again
 
 
 def select_observations(obs: Observations, keep_obs: np.ndarray) -> tuple[Observations, np.ndarray, np.ndarray]:
