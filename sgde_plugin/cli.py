@@ -19,7 +19,7 @@ from contextlib import contextmanager
 
 from .errors import InputError
 
-COMMANDS = ["synth", "validate", "calibrate", "prior", "eval", "cache", "export", "demo", "bench"]
+COMMANDS = ["synth", "validate", "masks", "calibrate", "prior", "eval", "cache", "export", "demo", "bench"]
 
 
 class OneLineParser(argparse.ArgumentParser):

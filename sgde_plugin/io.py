@@ -6,6 +6,7 @@ import io
 import os
 import struct
 import tempfile
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -97,12 +98,29 @@ def _read_file(path: str | Path) -> bytes:
 
 
 def check_complete(data: bytes, path: str | Path) -> None:
-    """InputError when PNG or JPEG bytes are cut short (no IEND chunk / no end-of-image marker), which
-    decoders would otherwise fill with grey or report only on stderr."""
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and b"IEND" not in data[-32:]:
-        raise InputError(path, None, "truncated PNG (no IEND chunk)")
+    """InputError when PNG or JPEG bytes are cut short (no IEND chunk / no end-of-image marker) or a PNG
+    chunk fails its CRC, which decoders would otherwise fill with grey or report only on stderr."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        if b"IEND" not in data[-32:]:
+            raise InputError(path, None, "truncated PNG (no IEND chunk)")
+        _check_png_chunks(data, path)
     if data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[-1024:]:
         raise InputError(path, None, "truncated JPEG (no end-of-image marker)")
+
+
+def _check_png_chunks(data: bytes, path: str | Path) -> None:
+    """Every PNG chunk's CRC-32 (type + data) must match the one stored after it."""
+    pos = 8
+    while pos + 12 <= len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        end = pos + 8 + length
+        if end + 4 > len(data):
+            raise InputError(path, None, "truncated PNG (a chunk runs past the end)")
+        (crc,) = struct.unpack(">I", data[end : end + 4])
+        if zlib.crc32(data[pos + 4 : end]) != crc:
+            kind = data[pos + 4 : pos + 8].decode("latin-1")
+            raise InputError(path, None, f"corrupted PNG ({kind} chunk at byte {pos} fails its CRC)")
+        pos = end + 4
 
 
 def _decode(path: str | Path, flags: int) -> np.ndarray | None:

@@ -94,11 +94,26 @@ def test_validate_decodes_every_image_and_quick_reads_headers(rig_dir, capsys):
     corrupt[len(data) // 2] ^= 0xFF  # inside the pixel data: the chunk's CRC no longer matches
     _png(rig_dir).write_bytes(bytes(corrupt))
     assert main(["validate", str(rig_dir)]) == 2
-    assert "CAM_BACK.png: cannot decode image" in _one_line(capsys)
+    assert "CAM_BACK.png: corrupted PNG (IDAT chunk at byte" in _one_line(capsys)
     _png(rig_dir).unlink()
     _png(rig_dir).mkdir()  # a folder where the image belongs
     assert main(["validate", str(rig_dir)]) == 2
     assert "CAM_BACK.png: cannot read" in _one_line(capsys)
+
+
+def test_damaged_images_are_refused_by_the_readers_without_decoder_noise(rig_dir, capfd):
+    from sgde_plugin.io import read_image
+
+    data = _png(rig_dir).read_bytes()
+    expected = read_image(_png(rig_dir))
+    for damaged, problem in ((data[:-100], "truncated PNG"), (data[:60] + bytes([data[60] ^ 1]) + data[61:],
+                                                               "corrupted PNG")):
+        _png(rig_dir).write_bytes(damaged)
+        with pytest.raises(InputError, match=problem):
+            read_image(_png(rig_dir))
+    assert capfd.readouterr().err == ""  # nothing from libpng on stderr
+    _png(rig_dir).write_bytes(data)
+    np.testing.assert_array_equal(read_image(_png(rig_dir)), expected)
 
 
 def test_deeply_nested_json_is_one_line(rig_dir, capsys):
@@ -174,3 +189,23 @@ def test_a_closed_pipe_ends_quietly(rig_dir):
     proc.stdout.close()  # like `| head` that has already exited
     err = proc.stderr.read().decode()
     assert proc.wait(120) == 141 and err == ""
+
+
+def test_eval_refuses_the_cache_of_another_scene(tmp_path, capsys):
+    import shutil
+
+    from sgde_plugin.cache.synthetic import SyntheticPriorCompute
+    from sgde_plugin.io import write_image
+    from sgde_plugin.rig import read_rig_folder
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    write_folder(a, make_rig(frames=1))
+    shutil.copytree(a, b)
+    noise = np.random.default_rng(7).integers(0, 255, (36, 64, 3), np.uint8)  # another drive, same ids
+    write_image(_png(b), noise)
+    rig = read_rig_folder(a)
+    build(rig, tmp_path / "c", scene="a", compute=SyntheticPriorCompute(rig))
+    assert main(["eval", str(a), "--cache", str(tmp_path / "c")]) == 2
+    assert "no ground-truth depth" in _one_line(capsys)  # its own scene passes the check
+    assert main(["eval", str(b), "--cache", str(tmp_path / "c")]) == 2
+    assert "a: frames[000000]: was built from other images, poses or timestamps" in _one_line(capsys)

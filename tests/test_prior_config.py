@@ -27,7 +27,8 @@ CHANGED = {
     "p1": 4, "p2": 64, "uniqueness": 5, "speckle_window": 50, "speckle_range": 3, "lr_max_diff": 1.5,
     "border_px": 3, "refine_iterations": 2, "min_zncc": 0.4, "max_abs_diff": 10.0, "min_texture": 0.25,
     "min_region_px": 100, "color": False, "margin_px": 4, "max_azimuth_deg": 70.0, "max_elevation_deg": 40.0,
-    "fisheye": "virtual",
+    "fisheye": "virtual", "confidence_disparity_px": 4.0, "edge_jump_px": 2.0, "normalize": "local",
+    "normalize_sigma": 6.0,
 }
 
 
@@ -103,6 +104,7 @@ def test_fingerprint_follows_every_setting_but_the_runtime_ones(model):
         ("uniqueness: many\n", "uniqueness: expected an integer, got 'many'"),
         ("scale: 3.0\n", "scale: must be in (0, 2]"),
         ("color: 1\n", "color: expected true or false, got 1"),
+        ("min_zncc: .nan\n", "min_zncc: must be a finite number"),
         ("fisheye: sideways\n", "fisheye: expected one of direct, virtual"),
         ("preset: mars\n", "preset: unknown preset 'mars'"),
         ("[1, 2]\n", "expected a mapping"),

@@ -59,6 +59,8 @@ def test_adjacent_pairs_overlap(preset):
     sectors = [pair_geometry(cams[a], cams[b], samples=80).sector_deg for a, b in zip(ring, ring[1:] + ring[:1])]
     if preset == "urban-fisheye":
         assert all(120 <= s <= 140 for s in sectors)  # 220 - 90 degrees
+    elif preset == "random":  # 5-30 degree overlaps by design (seed 0), pitch and roll widen the sector a little
+        assert all(4 <= s <= 32 for s in sectors), sectors
     else:
         assert all(5 <= s <= 20 for s in sectors), sectors
 

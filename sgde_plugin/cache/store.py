@@ -4,7 +4,7 @@ Layout (format `sgde-prior-cache/1`), one zarr group per scene:
 
     <cache>/zarr.json                   attrs: format, config document, config fingerprint
     <cache>/<scene>/zarr.json           attrs: fingerprints, cameras (name, size, depth kind),
-                                        frame ids, timestamps, frames digest, frame sources,
+                                        frame ids, timestamps, frames digest, frame inputs,
                                         units, rig document, ready flag
     <cache>/<scene>/depth               float16  (frames, cameras, H, W)  metres, 0 = no prior
     <cache>/<scene>/confidence          uint8    (frames, cameras, H, W)  round(255 * confidence)
@@ -257,7 +257,7 @@ class PriorCache:
                 continue
             scene, fi = state["frames"][fr.id]
             attrs = state["scenes"][scene]["attrs"]
-            sources = attrs.get("frame_sources") or []
+            sources = attrs.get("frame_inputs") or []
             stamp_ok = int(attrs["timestamps_us"][fi]) == int(fr.timestamp_us)
             if not stamp_ok or (fi < len(sources) and sources[fi] != frame_source(fr)):
                 raise InputError(
@@ -303,7 +303,8 @@ class PriorCache:
         """The stored depth of one camera image, checked against its written count of valid pixels."""
         s, fi, ci, cam = self._slot(frame_id, camera)
         raw = self._read(s, "depth", fi, ci, cam, frame_id)
-        n = int(np.count_nonzero(raw > 0))
+        # stored depths are 0 or positive finite float16: counting non-zero bit patterns counts valid pixels
+        n = int(np.count_nonzero(raw.view(np.uint16)))
         if n != int(s["counts"][fi, ci]):
             raise self._damaged(
                 s["group"].basename, frame_id, camera,
@@ -311,10 +312,16 @@ class PriorCache:
             )
         return s, fi, ci, cam, raw.astype(np.float32)
 
-    def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None,
+            min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """(depth float32 metres, valid bool) at native size, or resized to size=(h, w) without
         inventing depths (min-pool of valid values, then nearest). A missing or corrupted chunk raises
-        InputError naming the scene, frame and camera."""
+        InputError naming the scene, frame and camera. With `min_confidence` > 0 only values whose
+        stored confidence (steps of 1/255) rounds to at least it are kept (the rest read as no value)."""
+        if min_confidence > 0:
+            depth, _, conf = self.get_prior(frame_id, camera, size)
+            depth = np.where(conf >= np.float32(min_confidence - 0.5 / 255), depth, 0).astype(np.float32)
+            return depth, depth > 0
         size = check_size(size)
         _, _, _, cam, depth = self._depth(frame_id, camera)
         if size is not None and size != (cam.height, cam.width):

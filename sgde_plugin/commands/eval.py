@@ -21,6 +21,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--max-depth", type=number(0, 1e4, lo_open=True), default=80.0,
                         help="ground truth beyond this is ignored (80 m)")
+    parser.add_argument("--masks", help="folder of static masks <camera>.png for cameras without their own: "
+                        "masked pixels leave the ground truth and the overlap")
+    parser.add_argument("--curve", action="store_true",
+                        help="also print coverage and Abs Rel at each confidence threshold (sparsification curve)")
+    parser.add_argument("--min-confidence", type=number(0, 1), default=0.0,
+                        help="evaluate only prior values whose confidence reaches this (0-1, default 0: all)")
 
 
 def _truth_rig(rig, dir_arg: str, truth: str | None):
@@ -55,6 +61,10 @@ def run(args: argparse.Namespace) -> int:
     from ..tables import format_table
 
     rig = load_rig(args.dir)
+    if args.masks:
+        from ..masks import attach_masks
+
+        rig = attach_masks(rig, args.masks)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
     cache.check_frames(rig)  # the priors of another scene whose frames share ids are refused
@@ -72,12 +82,9 @@ def run(args: argparse.Namespace) -> int:
     lidar = not any(f.depths for f in frames)  # sparse truth: the overlap cannot be confirmed by the neighbour
     evaluator = PriorEvaluator(rig_true, args.max_depth, sparse_truth=lidar)
     for frame in progress(frames, desc="eval", total=len(frames)):
-        priors = {}
-        for cam in rig.camera_names:
-            depth, valid = cache.get(frame.id, cam)
-            priors[cam] = depth * valid
+        priors, confs = _cached_priors(cache, frame.id, rig.camera_names, args.min_confidence)
         gts = {cam: rig.load_depth(frame.id, cam) for cam in rig.camera_names}
-        evaluator.add(priors, gts, masks, frame=frame.id)
+        evaluator.add(priors, gts, masks, frame=frame.id, confidences=confs if args.curve else None)
     report = evaluator.result()
     report.update({"rig": str(args.dir), "cache": str(args.cache), "truth": truth_source,
                    "cache_fingerprint": cache.fingerprint})
@@ -89,9 +96,24 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(pairs))
     print()
     print(format_table(overall))
+    if args.curve and report.get("curve"):
+        print()
+        print("sparsification (overall): prior values kept where confidence >= min_confidence")
+        print(format_table(report["curve"]))
     if args.json_out:
         atomic_write_text(args.json_out, json.dumps(_plain(report), indent=1, allow_nan=False) + "\n")
     return 0
+
+
+def _cached_priors(cache, frame_id: str, cameras: list[str], min_confidence: float) -> tuple[dict, dict]:
+    """Prior depth (0 where none, or below `min_confidence`) and confidence of every camera of a frame."""
+    priors, confs = {}, {}
+    for cam in cameras:
+        depth, valid, conf = cache.get_prior(frame_id, cam)
+        if min_confidence > 0:
+            valid = valid & (conf >= min_confidence - 0.5 / 255)
+        priors[cam], confs[cam] = depth * valid, conf
+    return priors, confs
 
 
 def _plain(value):

@@ -43,6 +43,10 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("max_azimuth_deg", "float", "rectified canvas half-angle, degrees (60)"),
     ("max_elevation_deg", "float", "rectified canvas half-angle, degrees (50)"),
     ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
+    ("confidence_disparity_px", "float", "confidence x d / (d + this): small disparities are less sure (2)"),
+    ("edge_jump_px", "float", "confidence x jump / local disparity range beyond this, 0 = off (0)"),
+    ("normalize", "str", "photometric normalisation of each rectified pair: none, gain or local (none)"),
+    ("normalize_sigma", "float", "local normalisation window (Gaussian sigma), rectified pixels (8)"),
 ]
 OPTION_TYPES = {"int": int, "float": number(), "str": str}  # floats: finite (NaN and inf refused)
 
@@ -52,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dir", help="rig folder or data-set location (PATH[::SELECTOR...])")
     parser.add_argument("--out", required=True, help="prior cache: a folder, or an fsspec URL (s3://..., memory://...)")
     parser.add_argument("--rig", help="sgde-rig/1 file whose cameras (e.g. refined extrinsics) replace DIR's")
+    parser.add_argument("--masks", help="folder of static masks <camera>.png (e.g. from `sgde masks`) for the "
+                        "cameras without a mask of their own")
     parser.add_argument("--preset", help="per-data-set settings: ddad, nuscenes, fisheye or synthetic")
     parser.add_argument("--config", help="YAML file of prior settings (PriorConfig field names; may name a preset)")
     settings = parser.add_argument_group("prior settings (each overrides --config and --preset)")
@@ -133,6 +139,10 @@ def run(args: argparse.Namespace) -> int:
 
     config = load_prior_config(args.config, args.preset, settings_from_args(args))
     rig = load_rig_with_override(args.dir, args.rig)
+    if getattr(args, "masks", None):
+        from ..masks import attach_masks
+
+        rig = attach_masks(rig, args.masks)
     workers = args.workers if args.workers is not None else (0 if args.ray_address else default_workers(config))
     if workers < 0 or (workers == 0 and not args.ray_address):
         raise InputError(None, "--workers", "must be at least 1")

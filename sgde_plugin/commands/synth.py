@@ -27,6 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rotation error of each camera in rig.json, degrees (default 1)")
     parser.add_argument("--pose-noise-m", type=number(0, 100), default=0.05,
                         help="translation error of each camera in rig.json, metres (default 0.05)")
+    parser.add_argument("--ego-body", action="store_true",
+                        help="draw the car's glossy body into the cameras; true masks go to masks_true/")
     parser.add_argument("--supersample", type=int, default=1, help="k x k colour samples per pixel (default 1)")
     parser.add_argument("--capture", choices=("sync", "sequential"), default="sync",
                         help="sync: all cameras at the frame's time; sequential: in ring order over --sweep-ms "
@@ -58,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, "--sweep-ms", "must be in [0, 100) (one 10 Hz frame)")
     path = write_synth(args.preset, args.frames, out, seed=args.seed, scale=args.scale,
                        pose_noise_deg=args.pose_noise_deg, pose_noise_m=args.pose_noise_m,
-                       supersample=args.supersample, capture=args.capture, sweep_ms=args.sweep_ms)
+                       supersample=args.supersample, capture=args.capture, sweep_ms=args.sweep_ms,
+                       ego_body=args.ego_body)
     print(f"wrote {path}: preset {args.preset}, {args.frames} frames, seed {args.seed}, scale {args.scale}")
     return 0

@@ -36,7 +36,7 @@ from ..errors import InputError
 from ..geometry import make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
-from ..rig import Frame, Rig, own_captures, ring_pairs
+from ..rig import CameraCapture, Frame, Rig, ring_pairs
 from .jsonio import get, number_list, read_json, scan_table
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
@@ -102,7 +102,8 @@ def _poses(rows: list[tuple[str, dict]], file: Path) -> dict[str, np.ndarray]:
     if not ok:
         for token, row in rows:
             _pose(row, file, f"[token={token}]")
-    return {token: make_transform(quaternion_to_rotation(qi), ti) for (token, _), qi, ti in zip(rows, q, t)}
+    T = make_transform(quaternion_to_rotation(q), t) if rows else np.zeros((0, 4, 4))
+    return {token: T[i] for i, (token, _) in enumerate(rows)}
 
 
 @dataclass
@@ -132,6 +133,7 @@ class NuScenesTables:
         self._load_calibration()
         self._load_sample_data()
         self._load_ego_poses()
+        self._mounts: dict[str, np.ndarray] = {}  # LiDAR calibration token -> sensor_to_ego
 
     # --- tables ------------------------------------------------------------------------------
     def _load_scenes(self, wanted: Collection[str] | None) -> None:
@@ -331,15 +333,19 @@ class NuScenesTables:
         """A LIDAR_TOP sample_data row as a sweep: its file, mount, ego pose and time."""
         if row is None:
             return None
-        calib = self._calib_rows[row[_CALIB]]
-        mount = _pose(calib, self.dir / "calibrated_sensor.json", f"[token={row[_CALIB]}]")
+        mount = self._mounts.get(row[_CALIB])
+        if mount is None:
+            mount = _pose(self._calib_rows[row[_CALIB]], self.dir / "calibrated_sensor.json", f"[token={row[_CALIB]}]")
+            self._mounts[row[_CALIB]] = mount
         return LidarSweep(self.root / row[_FILE], "nuscenes_bin", mount, self._ego_pose(row), row[_TIME])
 
     def _frame(self, frame_id: str, chosen: dict[str, tuple], check: bool, cameras: list[Camera],
                lidar: tuple | None = None) -> Frame:
         ref = chosen[REFERENCE]
         pose = self._ego_pose(ref)
-        captures = own_captures(ref[_TIME], pose, {c: (r[_TIME], self._ego_pose(r)) for c, r in chosen.items()})
+        captures = {c: CameraCapture(None if r[_TIME] == ref[_TIME] else r[_TIME],
+                                     None if r[_EGO] == ref[_EGO] else self._ego_pose(r))
+                    for c, r in chosen.items() if r[_TIME] != ref[_TIME] or r[_EGO] != ref[_EGO]}
         images = _Files(self.root, {c: r[_FILE] for c, r in chosen.items()})
         if check:
             for cam in cameras:

@@ -23,6 +23,30 @@ from ..splat import lift_depth_torch, project_to_pixels, transform_points_torch
 from .rectify import torch_threads
 
 GROUP_COLUMNS = ("coverage", *METRIC_KEYS, "n_prior", "n_overlap")
+CURVE_THRESHOLDS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+CURVE_COLUMNS = ("min_confidence", "coverage", "abs_rel", "a1", "rmse", "n_prior")
+
+
+def sparsification_curve(
+    pred: np.ndarray, gt: np.ndarray, conf: np.ndarray, overlap_conf: np.ndarray | None = None,
+    thresholds: Iterable[float] = CURVE_THRESHOLDS, max_depth: float = 80.0,
+) -> list[dict[str, float]]:
+    """Accuracy and coverage of the prior kept at each confidence threshold (conf >= t).
+
+    `pred`, `gt`, `conf`: flat arrays over prior pixels with ground truth. `overlap_conf`: the
+    confidence of every true-overlap pixel (0 where there is no prior), for the coverage column
+    (NaN without it). A confidence that ranks errors gives an Abs Rel that falls as t rises.
+    """
+    rows = []
+    for t in thresholds:
+        keep = conf >= t if t > 0 else conf >= -1
+        m = depth_metrics(pred[keep], gt[keep], max_depth=max_depth)
+        cov = float("nan")
+        if overlap_conf is not None and overlap_conf.size:
+            cov = float(((overlap_conf >= t) & (overlap_conf > 0)).mean())
+        rows.append({"min_confidence": float(t), "coverage": cov, "abs_rel": m["abs_rel"], "a1": m["a1"],
+                     "rmse": m["rmse"], "n_prior": int(m["n"])})
+    return rows
 
 
 def true_overlap(
@@ -64,15 +88,29 @@ class _Group:
     def __init__(self) -> None:
         self.pred: list[np.ndarray] = []
         self.gt: list[np.ndarray] = []
+        self.conf: list[np.ndarray] = []
+        self.overlap_conf: list[np.ndarray] = []
         self.n_overlap = 0
         self.n_covered = 0
 
-    def add(self, prior: np.ndarray, gt: np.ndarray, select: np.ndarray, overlap: np.ndarray) -> None:
+    def add(self, prior: np.ndarray, gt: np.ndarray, select: np.ndarray, overlap: np.ndarray,
+            conf: np.ndarray | None = None) -> None:
         sel = select & (prior > 0) & (gt > 0)
         self.pred.append(prior[sel].astype(np.float32))
         self.gt.append(gt[sel].astype(np.float32))
+        if conf is not None:
+            c = np.where(prior > 0, conf, 0).astype(np.float32)
+            self.conf.append(c[sel])
+            self.overlap_conf.append(c[overlap])
         self.n_overlap += int(overlap.sum())
         self.n_covered += int((overlap & (prior > 0)).sum())
+
+    def curve(self, max_depth: float) -> list[dict[str, float]] | None:
+        """Sparsification curve of the pooled samples (None when no confidence was given)."""
+        if not self.conf or len(self.conf) != len(self.pred):
+            return None
+        return sparsification_curve(np.concatenate(self.pred), np.concatenate(self.gt), np.concatenate(self.conf),
+                                    np.concatenate(self.overlap_conf), max_depth=max_depth)
 
     def result(self, max_depth: float) -> dict[str, Any]:
         pred = np.concatenate(self.pred) if self.pred else np.zeros(0, np.float32)
@@ -106,13 +144,17 @@ class PriorEvaluator:
     def add(
         self, priors: Mapping[str, np.ndarray], gts: Mapping[str, np.ndarray | None],
         masks: Mapping[str, np.ndarray | None] | None = None, frame: str | None = None,
+        confidences: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """One frame: prior depth per camera (0 = none) and ground truth per camera (None = unknown).
 
         With `frame` (an id of the rig), cameras are related by their poses at their own captures
         (`Rig.capture`), as they must be when they fired at different times; otherwise by the extrinsics.
+        `masks` (True = use) drop pixels from the ground truth and the overlap (ego body);
+        `confidences` per camera feed the sparsification curve of `result()["curve"]`.
         """
         masks = masks or {}
+        confidences = confidences or {}
         in_range = {}
         for name, gt in gts.items():
             if gt is None:
@@ -139,8 +181,9 @@ class PriorEvaluator:
                 if x == name:
                     union |= m
             everywhere = np.ones(g.shape, bool)
-            self.cameras[name].add(prior, g, everywhere, union)
-            self.overall.add(prior, g, everywhere, union)
+            conf = confidences.get(name)
+            self.cameras[name].add(prior, g, everywhere, union, conf)
+            self.overall.add(prior, g, everywhere, union, conf)
         for a, b in self.rig.pairs:
             if (a, b) not in overlap:
                 continue
@@ -163,6 +206,7 @@ class PriorEvaluator:
             "overall": self.overall.result(self.max_depth),
             "cameras": {k: g.result(self.max_depth) for k, g in self.cameras.items()},
             "pairs": {k: g.result(self.max_depth) for k, g in self.pairs.items()},
+            "curve": self.overall.curve(self.max_depth),
         }
 
 

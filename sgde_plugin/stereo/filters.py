@@ -121,3 +121,59 @@ def remove_islands(disp: np.ndarray, conf: np.ndarray, min_area: int, max_step: 
     d16 = np.where(conf > 0, np.rint(disp * 16), -16).astype(np.int16)
     cv2.filterSpeckles(d16, -16, int(min_area), int(round(max_step * 16)))
     conf[d16 < 0] = 0
+
+
+NORMALIZATIONS = ("none", "gain", "local")
+
+
+def _masked_blur(image: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian mean of `image` over the pixels where `weight` is 1 (normalised convolution)."""
+    num = cv2.GaussianBlur(image * weight, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(weight, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    return num / np.maximum(den, 1e-3)
+
+
+def normalize_image(image: np.ndarray, valid: np.ndarray, mode: str, sigma: float = 8.0,
+                    reference: tuple[float, float] | None = None) -> np.ndarray:
+    """A uint8 grey canvas made insensitive to exposure: 'gain' (affine to a mean/std), 'local' (local contrast).
+
+    'gain' maps the pixels under `valid` to `reference` = (mean, std) (default 128, 40): one gain and
+    offset per image, i.e. per overlap when applied to both canvases of a pair. 'local' subtracts the
+    Gaussian mean (sigma px) and divides by the local standard deviation, both taken over `valid`
+    only, so the black outside the camera's view does not leak in; it also removes vignetting and
+    smooth shading differences. Pixels outside `valid` are 0.
+    """
+    if mode == "none":
+        return image
+    if mode not in NORMALIZATIONS:
+        raise ValueError(f"unknown normalisation {mode!r} (expected {', '.join(NORMALIZATIONS)})")
+    img = grey_float(image)
+    w = valid.astype(np.float32)
+    target_mean, target_std = reference or (128.0, 40.0)
+    if mode == "gain":
+        vals = img[valid]
+        if vals.size < 2:
+            return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        out = (img - vals.mean()) / max(float(vals.std()), 1.0) * target_std + target_mean
+    else:
+        mean = _masked_blur(img, w, sigma)
+        var = _masked_blur(img * img, w, sigma) - mean * mean
+        out = (img - mean) / np.sqrt(np.maximum(var, 0) + 4.0) * (target_std / 1.5) + target_mean
+    out = np.clip(out, 1, 255)
+    out[~valid] = 0
+    return (out + 0.5).astype(np.uint8)
+
+
+def discontinuity_factor(disp: np.ndarray, valid: np.ndarray, jump_px: float, window: int = 7) -> np.ndarray:
+    """Per-pixel factor in (0, 1]: jump / (local disparity range) where that range exceeds `jump_px`.
+
+    Matches next to a depth discontinuity are the least reliable (foreground fattening, occlusion
+    edges, and a LiDAR that sees round the object from elsewhere); the range is taken over valid
+    disparities in a window x window neighbourhood.
+    """
+    k = np.ones((window, window), np.uint8)
+    d = disp.astype(np.float32)
+    hi = cv2.dilate(np.where(valid, d, 0).astype(np.float32), k)
+    lo = cv2.erode(np.where(valid, d, np.float32(1e6)).astype(np.float32), k)
+    rng = np.where(valid, hi - lo, 0)
+    return np.where(rng > jump_px, jump_px / np.maximum(rng, 1e-6), 1.0).astype(np.float32)

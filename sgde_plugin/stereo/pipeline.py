@@ -20,7 +20,16 @@ from ..errors import InputError
 from ..geometry import rotation_vector
 from ..rig import Frame, Rig
 from .backproject import BackProjection, backprojection, fuse_into
-from .filters import grey_float, lr_check, photometric_scores, refine_disparity, remove_islands
+from .filters import (
+    NORMALIZATIONS,
+    discontinuity_factor,
+    grey_float,
+    lr_check,
+    normalize_image,
+    photometric_scores,
+    refine_disparity,
+    remove_islands,
+)
 from .matchers import Matcher, SGBMMatcher, load_learned_matcher, model_digests
 from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair, torch_threads
 from .virtual import virtual_pinholes
@@ -82,6 +91,10 @@ class PriorConfig:
     max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
     max_elevation_deg: float = 50.0
     fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
+    confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
+    edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
+    normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
+    normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
 
     def __post_init__(self) -> None:
         if self.matcher not in MATCHERS:
@@ -105,6 +118,8 @@ class PriorConfig:
         """One-line InputError for a value out of its range."""
         if self.learned and not self.matcher_path:
             raise InputError(None, "matcher_path", f"matcher {self.matcher!r} needs a model file")
+        if self.normalize not in NORMALIZATIONS:
+            raise InputError(None, "normalize", f"expected one of {', '.join(NORMALIZATIONS)}")
         if self.fisheye not in FISHEYE_PATHS:
             raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
         if self.device not in DEVICES:
@@ -375,7 +390,9 @@ class PriorBuilder:
             conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
             if cfg.min_texture > 0:  # rows without x-structure are ambiguous
                 conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)
-            conf *= disp / (disp + 2.0)  # small disparities (far points) give uncertain depth
+            conf *= disp / (disp + cfg.confidence_disparity_px)  # small disparities give uncertain depth
+            if cfg.edge_jump_px > 0:
+                conf *= discontinuity_factor(disp, conf > 0, cfg.edge_jump_px)
             remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
@@ -385,18 +402,14 @@ class PriorBuilder:
     ) -> tuple[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], dict[str, float]]:
         """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side.
 
-        `batched` maps id(plan) to (left canvas, right canvas, matcher answers, seconds) computed ahead."""
+        `batched` maps id(plan) to (canvases, matcher answers, seconds) computed ahead."""
         cfg = self.config
         t0 = time.perf_counter()
         ahead = None if batched is None else batched.get(id(plan))
         if ahead is None:
-            left = plan.left.warp(grey[plan.left.camera])
-            right = plan.right.warp(grey[plan.right.camera])
-            matched, t_ahead = None, 0.0
+            (left, right, valid_l, valid_r), matched, t_ahead = self._canvases(plan, grey, masks), None, 0.0
         else:
-            left, right, matched, t_ahead = ahead
-        valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
-        valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
+            (left, right, valid_l, valid_r), matched, t_ahead = ahead
         t_warp = time.perf_counter() - t0
         disp_l, conf_l, disp_r, conf_r, t_match = self.match_pair(plan, left, right, valid_l, valid_r, matched)
         t_match += t_ahead
@@ -432,7 +445,7 @@ class PriorBuilder:
                     raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
                                      f"{cam.width}x{cam.height}")
         grey = self._prepare(images)
-        batched = self._match_batched(grey)
+        batched = self._match_batched(grey, masks)
         if self.threads > 1 and len(self.plans) > 1:
             with ThreadPoolExecutor(self.threads) as pool:
                 results = list(pool.map(lambda p: self._pair_values(p, grey, masks, batched), self.plans))
@@ -455,16 +468,32 @@ class PriorBuilder:
         self.last_warning = self._empty_frame_warning(out)
         return out
 
-    def _match_batched(self, grey: Mapping[str, np.ndarray]) -> dict[int, Any] | None:
+    def _canvases(
+        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """A pair's rectified images as matched (normalised if asked) and their valid pixels."""
+        cfg = self.config
+        left = plan.left.warp(grey[plan.left.camera])
+        right = plan.right.warp(grey[plan.right.camera])
+        valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
+        valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
+        if cfg.normalize != "none":
+            left = normalize_image(left, valid_l, cfg.normalize, cfg.normalize_sigma)
+            right = normalize_image(right, valid_r, cfg.normalize, cfg.normalize_sigma)
+        return left, right, valid_l, valid_r
+
+    def _match_batched(
+        self, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
+    ) -> dict[int, Any] | None:
         """A learned matcher's answers for every pair of the frame, same-size inputs batched; None for SGBM."""
         match_many = getattr(self.matcher, "match_many", None)
         if match_many is None or not self.plans:
             return None
         t0 = time.perf_counter()
-        canvases = [(p.left.warp(grey[p.left.camera]), p.right.warp(grey[p.right.camera])) for p in self.plans]
+        canvases = [self._canvases(p, grey, masks) for p in self.plans]
         t_warp = time.perf_counter() - t0
         inputs, ranges = [], []
-        for plan, (left, right) in zip(self.plans, canvases):
+        for plan, (left, right, _, _) in zip(self.plans, canvases):
             inputs += self.matcher_inputs(plan, left, right)
             ranges += [plan.pair.max_disparity] * 2
         if hasattr(self.matcher, "counts"):
@@ -472,10 +501,8 @@ class PriorBuilder:
         t0 = time.perf_counter()
         answers = match_many(inputs, ranges)
         t_each = (time.perf_counter() - t0 + t_warp) / len(self.plans)
-        return {
-            id(plan): (left, right, answers[2 * i : 2 * i + 2], t_each)
-            for i, (plan, (left, right)) in enumerate(zip(self.plans, canvases))
-        }
+        return {id(plan): (canvas, answers[2 * i : 2 * i + 2], t_each)
+                for i, (plan, canvas) in enumerate(zip(self.plans, canvases))}
 
     def _empty_frame_warning(self, out: Mapping[str, PriorMap]) -> str | None:
         """One line when the rig has pairs but the frame's prior is empty, with the likeliest cause."""

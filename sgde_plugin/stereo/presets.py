@@ -10,6 +10,7 @@ refused with one line naming the file and the key. `save_prior_config` writes ev
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -57,6 +58,8 @@ def _check_value(name: str, value: Any, source: str | Path | None) -> Any:
     if not ok:
         raise InputError(source, name, f"expected {expected}, got {value!r}")
     if base == "float":
+        if not math.isfinite(value):
+            raise InputError(source, name, f"must be a finite number, got {value!r}")
         return float(value)
     if base == "dict":
         return dict(value)

@@ -8,11 +8,13 @@ is the wide one). Yaws are the nominal ring directions; the rigs are level (no p
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from ..cameras import Camera, Ocam, Pinhole
 from ..geometry import camera_mount
+from .ego_body import ego_body_for
 from .random_rig import random_rig
 from .world import World, build_world, with_companions
 
@@ -125,10 +127,12 @@ def preset_cameras(preset: str, scale: float = 1.0, seed: int = 0) -> list[Camer
     raise ValueError(f"unknown preset {preset!r} (expected one of {', '.join(PRESETS)})")
 
 
-def preset_world(preset: str, seed: int) -> World:
-    """The street of a seed, plus the near objects of the `random` preset's rig."""
+def preset_world(preset: str, seed: int, ego_body: bool = False) -> World:
+    """The street of a seed, plus the near objects of the `random` preset's rig and, optionally, the ego body."""
     world = build_world(seed)
-    if preset != "random":
-        return world
-    near = random_rig(seed).near_objects
-    return with_companions(world, [(o.center, o.half, o.yaw, o.color) for o in near])
+    if preset == "random":
+        near = random_rig(seed).near_objects
+        world = with_companions(world, [(o.center, o.half, o.yaw, o.color) for o in near])
+    if ego_body:
+        world = replace(world, ego_body=ego_body_for(preset_cameras(preset, 1.0, seed)))
+    return world

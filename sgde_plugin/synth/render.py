@@ -231,6 +231,37 @@ def rig_lod(cameras: list[Camera]) -> TextureLod:
     return TextureLod(angle, tuple(float(v) for v in centre))
 
 
+def _cone_tiles(tiles: RayTiles, dirs: Tensor, valid: Tensor) -> RayTiles:
+    """The same tiling with other ray directions (camera frame) and validity, bounding cones recomputed."""
+    axis = (dirs * valid[..., None]).sum(1)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    cos = (dirs * axis[:, None, :]).sum(-1).clamp(-1, 1)
+    ang = torch.where(valid, torch.acos(cos), torch.zeros_like(cos))
+    half = torch.where(valid.any(1), ang.max(dim=1).values + _CONE_MARGIN, torch.full_like(axis[:, 0], -1.0))
+    return RayTiles(dirs, valid, axis, half, tiles.pixel_angle, tiles.tiles_y, tiles.tiles_x, tiles.tile, tiles.k)
+
+
+def _with_ego_body(world: World, tiles: RayTiles, rgb: Tensor, camera: Camera, cam_to_world: np.ndarray,
+                   time_s: float, angle: Tensor, lod_origin: np.ndarray | None) -> Tensor:
+    """Linear RGB with the ego body's pixels replaced by its paint mixed with the mirrored world."""
+    from .ego_body import body_hits, reflect
+
+    body = world.ego_body
+    t, n, trim = body_hits(body, tiles.dirs, camera.sensor_to_ego)
+    on = tiles.valid & torch.isfinite(t)
+    if not bool(on.any()):
+        return rgb
+    mirrored = reflect(tiles.dirs, n.float(), camera.sensor_to_ego).float()
+    mirrored = mirrored / mirrored.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    rt = _cone_tiles(tiles, torch.where(on[..., None], mirrored, tiles.dirs), on)
+    hits = trace(world, rt, cam_to_world, time_s)
+    seen = shade(world, hits.t, hits.pid, hits.dirs, angle, rt.valid, cam_to_world[:3, 3], time_s, lod_origin)
+    paint = torch.tensor(body.paint, dtype=rgb.dtype) * (0.55 + 0.45 * n[..., 2:3].to(rgb.dtype))
+    mixed = (1 - body.reflectivity) * paint + body.reflectivity * seen
+    mixed = torch.where(trim[..., None], torch.full_like(mixed, 0.03), mixed)
+    return torch.where(on[..., None], mixed, rgb)
+
+
 def render(
     world: World, camera: Camera, ego_to_world: np.ndarray, time_s: float, supersample: int = 1, threads: int = 1,
     lod: TextureLod | None = None,
@@ -254,6 +285,13 @@ def render(
         else:
             depth_t = hits1.t * tiles1.dirs[..., 2]
         has_depth = (hits1.pid >= 0) & (hits1.t <= MAX_DEPTH_M)
+        if world.ego_body is not None:
+            from .ego_body import body_hits
+
+            tb, _, _ = body_hits(world.ego_body, tiles1.dirs, camera.sensor_to_ego)
+            on = tiles1.valid & torch.isfinite(tb)
+            depth_t = torch.where(on, tb.float() * (1.0 if intr.depth_is_range else tiles1.dirs[..., 2]), depth_t)
+            has_depth = has_depth | on
         depth_t = torch.where(has_depth, depth_t, torch.zeros_like(depth_t))
         depth = _untile(depth_t, tiles1, intr.height, intr.width)[:, :, 0]
 
@@ -268,6 +306,8 @@ def render(
             angle = torch.full_like(tiles.pixel_angle, float(lod.angle))
             lod_origin = (np.asarray(ego_to_world, np.float64) @ np.array([*lod.origin_ego, 1.0]))[:3]
         rgb = shade(world, hits.t, hits.pid, hits.dirs, angle, tiles.valid, cam_to_world[:3, 3], time_s, lod_origin)
+        if world.ego_body is not None:
+            rgb = _with_ego_body(world, tiles, rgb, camera, cam_to_world, time_s, angle, lod_origin)
         rgb = _untile(rgb, tiles, intr.height, intr.width).mean(dim=2)
         rgb8 = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8)
     return rgb8.numpy(), depth.numpy().astype(np.float32)

@@ -47,6 +47,7 @@ class SynthSequence:
     world: World
     images: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     depths: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    body_masks: dict[str, np.ndarray] = field(default_factory=dict)  # --ego-body: True where the body is
 
 
 def frame_id(index: int) -> str:
@@ -113,6 +114,15 @@ def _rigs(preset: str, frames: int, seed: int, scale: float, noise_deg: float, n
     return rig_true, rig
 
 
+def _body_masks(world: World, rig_true: Rig) -> dict[str, np.ndarray]:
+    """True ego-body pixels of every camera (empty without a body)."""
+    from .ego_body import body_mask
+
+    if world.ego_body is None:
+        return {}
+    return {c.name: body_mask(world.ego_body, c) for c in rig_true.cameras}
+
+
 def default_workers() -> int:
     """Cameras rendered concurrently: one per core, at most 4."""
     return max(1, min(4, os.cpu_count() or 1))
@@ -142,12 +152,16 @@ def _render_frames(world: World, rig_true: Rig, supersample: int,
 
 def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, pose_noise_deg: float = 1.0,
                    pose_noise_m: float = 0.05, supersample: int = 1, workers: int | None = None,
-                   capture: str = "sync", sweep_ms: float = SWEEP_MS) -> SynthSequence:
-    """Render a sequence in memory (images and depths keyed by frame id, then camera name)."""
+                   capture: str = "sync", sweep_ms: float = SWEEP_MS, ego_body: bool = False) -> SynthSequence:
+    """Render a sequence in memory (images and depths keyed by frame id, then camera name).
+
+    `ego_body`: draw the car's glossy body into every camera (`synth.ego_body`); `body_masks` then
+    holds each camera's true body pixels.
+    """
     _check(preset, frames, scale, pose_noise_deg, pose_noise_m, capture, sweep_ms)
-    world = preset_world(preset, seed)
+    world = preset_world(preset, seed, ego_body)
     rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world, capture, sweep_ms)
-    seq = SynthSequence(rig_true, rig, world)
+    seq = SynthSequence(rig_true, rig, world, body_masks=_body_masks(world, rig_true))
 
     def keep(fid: str, cam: str, rgb: np.ndarray, depth: np.ndarray) -> None:
         seq.images.setdefault(fid, {})[cam] = rgb
@@ -160,7 +174,7 @@ def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, 
 def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, scale: float = 1.0,
                 pose_noise_deg: float = 1.0, pose_noise_m: float = 0.05, supersample: int = 1,
                 show_progress: bool | None = None, workers: int | None = None, capture: str = "sync",
-                sweep_ms: float = SWEEP_MS) -> Path:
+                sweep_ms: float = SWEEP_MS, ego_body: bool = False) -> Path:
     """Render a sequence into an sgde-rig/1 folder (built in a temporary sibling, renamed at the end).
 
     `out_dir` must not exist or be an empty folder. Writes rig.json (perturbed extrinsics),
@@ -171,7 +185,7 @@ def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, sc
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise FileExistsError(f"{out} exists and is not an empty folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    world = preset_world(preset, seed)
+    world = preset_world(preset, seed, ego_body)
     rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world, capture, sweep_ms)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
@@ -183,6 +197,8 @@ def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, sc
             (tmp / "frames" / fr.id).mkdir(parents=True, exist_ok=True)
             (tmp / "depth" / fr.id).mkdir(parents=True, exist_ok=True)
         _render_frames(world, rig_true, supersample, save, show_progress, workers or default_workers())
+        for cam, body in _body_masks(world, rig_true).items():  # the truth, not masks/: those are estimated
+            write_image(tmp / "masks_true" / f"{cam}.png", np.where(body, 0, 255).astype(np.uint8))
         write_rig_json(rig, tmp / "rig.json")
         write_rig_json(rig_true, tmp / "rig_true.json")
         os.chmod(tmp, 0o755)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import make_transform, yaw_pitch_roll_to_rotation
+from .ego_body import EgoBody
 from .noise import NoiseBank, make_noise_bank
 
 # materials
@@ -65,6 +66,7 @@ class World:
     sun: np.ndarray
     ego_speed: float = EGO_SPEED_MPS
     ego_lane_y: float = EGO_LANE_Y
+    ego_body: EgoBody | None = None  # drawn in every camera when set (`synth.ego_body`)
 
     @property
     def n_boxes(self) -> int:
