@@ -15,11 +15,6 @@ def rotation_error(R: np.ndarray) -> float:
     return float(np.abs(R.T @ R - np.eye(3)).max())
 
 
-def is_rotation(R: np.ndarray, tol: float = ORTHONORMAL_TOL) -> bool:
-    """True if R is orthonormal within `tol` with determinant +1."""
-    return rotation_error(R) <= tol
-
-
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Homogeneous transform(s) (..., 4, 4) from rotation(s) (..., 3, 3) and translation(s) (..., 3)."""
     R = np.asarray(R, dtype=np.float64)
@@ -97,15 +92,15 @@ def rotation_angle_deg(R: np.ndarray) -> float | np.ndarray:
 
 
 def quaternion_to_rotation(q_wxyz: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a quaternion given as (w, x, y, z); normalised first."""
-    w, x, y, z = np.asarray(q_wxyz, dtype=np.float64) / np.linalg.norm(q_wxyz)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Rotation matrix (3, 3) of a quaternion given as (w, x, y, z), or (..., 3, 3) of (..., 4); normalised first."""
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:

@@ -189,3 +189,23 @@ def test_a_closed_pipe_ends_quietly(rig_dir):
     proc.stdout.close()  # like `| head` that has already exited
     err = proc.stderr.read().decode()
     assert proc.wait(120) == 141 and err == ""
+
+
+def test_eval_refuses_the_cache_of_another_scene(tmp_path, capsys):
+    import shutil
+
+    from sgde_plugin.cache.synthetic import SyntheticPriorCompute
+    from sgde_plugin.io import write_image
+    from sgde_plugin.rig import read_rig_folder
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    write_folder(a, make_rig(frames=1))
+    shutil.copytree(a, b)
+    noise = np.random.default_rng(7).integers(0, 255, (36, 64, 3), np.uint8)  # another drive, same ids
+    write_image(_png(b), noise)
+    rig = read_rig_folder(a)
+    build(rig, tmp_path / "c", scene="a", compute=SyntheticPriorCompute(rig))
+    assert main(["eval", str(a), "--cache", str(tmp_path / "c")]) == 2
+    assert "no ground-truth depth" in _one_line(capsys)  # its own scene passes the check
+    assert main(["eval", str(b), "--cache", str(tmp_path / "c")]) == 2
+    assert "a: frames[000000]: was built from other images, poses or timestamps" in _one_line(capsys)

@@ -3,7 +3,7 @@ together through a barrier, many times; the cache never mixes them. Also: the wr
 waits, the fingerprint is re-checked at every frame write, and a scene another live build is creating is
 never deleted.
 
-Runtime ~10 s on 2 cores (24 races of two 3-frame builds in threads, 2 in fork-server processes).
+Runtime ~10 s on 2 cores (24 races of two 3-frame builds in threads, 1 in fork-server processes).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from sgde_plugin.cache.synthetic import SyntheticPriorCompute
 from sgde_plugin.errors import InputError
 
 THREAD_RACES = 24
-PROCESS_RACES = 2
+PROCESS_RACES = 1
 FRAMES = 3
 RIG_SHIFTS = {1: 0.0, 2: 0.1}  # two calibrations, told apart by their synthetic-prior seeds 1 and 2
 

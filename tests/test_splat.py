@@ -111,3 +111,16 @@ def test_splat_torch_float32_matches_float64() -> None:
     both = (d64 > 0) & (d32 > 0)
     close = (d64[both] - d32[both].double()).abs() <= 1e-5 * d64[both]
     assert close.double().mean() > 0.99
+
+
+def test_quaternion_to_rotation_batched_equals_one_by_one() -> None:
+    from sgde_plugin.geometry import quaternion_to_rotation, rotation_to_quaternion
+
+    rng = np.random.default_rng(1)
+    q = rng.standard_normal((5, 4)) * 3  # not unit length: normalised inside
+    R = quaternion_to_rotation(q)
+    assert R.shape == (5, 3, 3)
+    for qi, Ri in zip(q, R):
+        np.testing.assert_allclose(Ri, quaternion_to_rotation(qi), atol=1e-15)
+        np.testing.assert_allclose(Ri @ Ri.T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(abs(rotation_to_quaternion(Ri) @ (qi / np.linalg.norm(qi))), 1.0, atol=1e-12)

@@ -251,6 +251,10 @@ def test_search_range_batching_and_refinement_default(scene, raft):
     assert calls_one == 2 * len(one.plans) and calls_four < calls_one
     for cam in a:
         assert np.array_equal(a[cam].depth, b[cam].depth)
+    # the matcher sees the canvases the filters see: photometric normalisation (grey out) reaches it
+    stand_in.CALLS.clear()
+    PriorBuilder(rig, PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt), normalize="gain")).build(images)
+    assert stand_in.CALLS and not any(c["rgb"] for c in stand_in.CALLS)
     # the search range reaches a module that asks for it
     module = RangeMatcher()
     matcher = TorchMatcher(module)

@@ -68,7 +68,8 @@ def run(fast: bool = False) -> dict[str, Any]:
     """Seconds per six-camera frame of RAFT-family matchers (random weights) through the prior pipeline."""
     import torch
 
-    from ..commands.prior import load_rig_with_override
+    from ..readers.detect import load_rig
+    from ..rig import read_rig_json
     from ..stereo.pipeline import PriorConfig
     from ..synth.sequence import write_synth
 
@@ -78,7 +79,8 @@ def run(fast: bool = False) -> dict[str, Any]:
                               "scale": 0.5, "image_size": "1600x900" if not fast else "800x450", "models": {}}
     with tempfile.TemporaryDirectory() as tmp:
         root = write_synth("nuscenes", frames, Path(tmp) / "nus", scale=0.5 if fast else 1.0)
-        rig = load_rig_with_override(str(root), str(root / "rig_true.json"))
+        true = read_rig_json(root / "rig_true.json")
+        rig = load_rig(str(root)).with_extrinsics({c.name: c.sensor_to_ego for c in true.cameras})
         for name in names:
             import torchvision.models.optical_flow as flow_models
 

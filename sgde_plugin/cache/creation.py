@@ -162,7 +162,7 @@ def _create_scene(root: zarr.Group, scene: str, rig: Any, parts: Mapping[str, An
         "frame_ids": list(ids),
         "timestamps_us": [int(stamps[i]) for i in ids],
         "frames_digest": frames_digest(ids, [stamps[i] for i in ids]),
-        "frame_sources": [sources[i] for i in ids],
+        "frame_inputs": [sources[i] for i in ids],
         "units": dict(UNITS),
         "rig": rig_document(rig),
         "sgde_version": __version__,
@@ -193,7 +193,7 @@ def _check_same_scene(location: Any, scene: str, attrs: Mapping[str, Any], rig: 
     ids, stamps, sources = _frame_lists(rig)
     known = list(attrs["frame_ids"])
     known_stamps = dict(zip(known, attrs["timestamps_us"]))
-    known_sources = dict(zip(known, attrs.get("frame_sources") or []))
+    known_sources = dict(zip(known, attrs.get("frame_inputs") or []))
     for fid in ids:
         if fid in known_stamps and int(known_stamps[fid]) != stamps[fid]:
             raise InputError(
@@ -223,8 +223,8 @@ def _extend(group: zarr.Group, arrays: Mapping[str, Any], attrs: Mapping[str, An
         all_stamps = [int(t) for t in attrs["timestamps_us"]] + [stamps[i] for i in added]
         update: dict[str, Any] = {"frame_ids": all_ids, "timestamps_us": all_stamps,
                                   "frames_digest": frames_digest(all_ids, all_stamps)}
-        if "frame_sources" in attrs:
-            update["frame_sources"] = list(attrs["frame_sources"]) + [sources[i] for i in added]
+        if "frame_inputs" in attrs:
+            update["frame_inputs"] = list(attrs["frame_inputs"]) + [sources[i] for i in added]
         group.attrs.update(update)
     return all_ids
 

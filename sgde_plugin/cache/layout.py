@@ -3,6 +3,7 @@ attributes against arrays, and the per-frame chunk checks shared by readers, `ve
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -55,17 +56,27 @@ def frames_digest(frame_ids: Sequence[str], timestamps_us: Sequence[int]) -> str
     return digest({"ids": list(frame_ids), "timestamps_us": [int(t) for t in timestamps_us]})
 
 
+def file_signature(path: Any, edge: int = 16384) -> str:
+    """Size and SHA-256 of the first and last `edge` bytes of a file (cheap, and differs between any two
+    photographs); '-' when it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(edge)
+            f.seek(max(size - edge, len(head)))
+            tail = f.read(edge)
+    except (OSError, TypeError):
+        return "-"
+    return f"{size}:{hashlib.sha256(head + tail).hexdigest()[:16]}"
+
+
 def frame_source(frame: Any) -> str:
     """Digest of what a frame's prior is computed from besides the calibration: its rig.json entry
-    (timestamp, ego poses) and the byte size of each image, so priors of another scene are noticed."""
-    sizes = {}
-    for cam, path in sorted(dict(getattr(frame, "images", {}) or {}).items()):
-        try:
-            sizes[cam] = os.stat(path).st_size
-        except (OSError, TypeError):
-            sizes[cam] = -1
+    (timestamp, ego poses) and a signature of each image file, so priors of another scene are noticed.
+    Stored per frame in the scene attribute `frame_inputs`."""
+    images = {cam: file_signature(path) for cam, path in sorted(dict(getattr(frame, "images", {}) or {}).items())}
     doc = frame.to_dict() if hasattr(frame, "to_dict") else {"id": frame.id, "timestamp_us": int(frame.timestamp_us)}
-    return digest({"frame": doc, "image_bytes": sizes})
+    return digest({"frame": doc, "images": images})
 
 
 def scene_groups(store: Store, root: Any) -> tuple[dict[str, Any], dict[str, str]]:
@@ -124,8 +135,8 @@ def _attribute_problems(attrs: Mapping[str, Any]) -> list[str]:
         problems.append(f"{len(stamps)} timestamps_us for {len(ids)} frame_ids")
     elif "frames_digest" in attrs and attrs["frames_digest"] != frames_digest(ids, stamps):
         problems.append("frame_ids / timestamps_us were changed after the build (frames_digest differs)")
-    if "frame_sources" in attrs and len(attrs["frame_sources"]) != len(ids):
-        problems.append("frame_sources and frame_ids differ in length")
+    if "frame_inputs" in attrs and len(attrs["frame_inputs"]) != len(ids):
+        problems.append("frame_inputs and frame_ids differ in length")
     rig = attrs.get("rig")
     if isinstance(rig, Mapping):
         if digest(rig) != attrs["rig_fingerprint"]:
@@ -241,6 +252,7 @@ __all__ = [
     "UNITS",
     "camera_entries",
     "check_scene_name",
+    "file_signature",
     "frame_problems",
     "frame_source",
     "frames_digest",

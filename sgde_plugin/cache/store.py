@@ -4,7 +4,7 @@ Layout (format `sgde-prior-cache/1`), one zarr group per scene:
 
     <cache>/zarr.json                   attrs: format, config document, config fingerprint
     <cache>/<scene>/zarr.json           attrs: fingerprints, cameras (name, size, depth kind),
-                                        frame ids, timestamps, frames digest, frame sources,
+                                        frame ids, timestamps, frames digest, frame inputs,
                                         units, rig document, ready flag
     <cache>/<scene>/depth               float16  (frames, cameras, H, W)  metres, 0 = no prior
     <cache>/<scene>/confidence          uint8    (frames, cameras, H, W)  round(255 * confidence)
@@ -205,16 +205,6 @@ class PriorCache:
                 seen.setdefault(c.name, None)
         return list(seen)
 
-    def camera_size(self, camera: str, frame_id: str | None = None) -> tuple[int, int]:
-        """Native (height, width) of a camera's prior."""
-        for name, s in self._open()["scenes"].items():
-            if frame_id is not None and self._locate(frame_id)[0] != name:
-                continue
-            if camera in s["camera_index"]:
-                entry = s["cameras"][s["camera_index"][camera]]
-                return entry.height, entry.width
-        raise KeyError(camera)
-
     def config(self) -> dict[str, Any]:
         """The configuration document the cache was built with (config, algo_version, format)."""
         return dict(self._open()["root_attrs"].get("config", {}))
@@ -257,7 +247,7 @@ class PriorCache:
                 continue
             scene, fi = state["frames"][fr.id]
             attrs = state["scenes"][scene]["attrs"]
-            sources = attrs.get("frame_sources") or []
+            sources = attrs.get("frame_inputs") or []
             stamp_ok = int(attrs["timestamps_us"][fi]) == int(fr.timestamp_us)
             if not stamp_ok or (fi < len(sources) and sources[fi] != frame_source(fr)):
                 raise InputError(

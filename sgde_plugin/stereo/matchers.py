@@ -342,7 +342,13 @@ class OnnxMatcher(LearnedMatcher):
         feed = {self._names[0]: left, self._names[1]: right}
         if self._range is not None:
             feed[self._range[0]] = np.array(max_disparity, dtype=self._range[1])
-        return _output_array(self._session.run(None, feed))
+        try:
+            out = self._session.run(None, feed)
+        except Exception as exc:  # noqa: BLE001 - say which input the model could not take
+            first = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+            raise InputError(self.path, None, f"onnxruntime failed on inputs of shape {list(left.shape)} "
+                             f"(search range {max_disparity}): {first}") from None
+        return _output_array(out)
 
 
 def _import_factory(spec: str) -> Callable[..., Any]:

@@ -93,6 +93,8 @@ class PriorConfig:
     fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
     confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
     edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
+    min_confidence: float = 0.0  # fused values whose confidence is below this are dropped (real-camera presets 0.4)
+    antialias: bool = False  # low-pass each image before it is resampled at `scale` (Gaussian, decimation sigma)
     normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
     normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
 
@@ -124,6 +126,8 @@ class PriorConfig:
             raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
         if self.device not in DEVICES:
             raise InputError(None, "device", f"expected one of {', '.join(DEVICES)}, got {self.device!r}")
+        if not 0 <= self.min_confidence < 1:
+            raise InputError(None, "min_confidence", "must be in [0, 1)")
         if not 0 < self.scale <= 2:
             raise InputError(None, "scale", "must be in (0, 2]")
         if not 0 < self.min_depth < self.max_depth:
@@ -337,6 +341,9 @@ class PriorBuilder:
                 raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
             if not self.config.color and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+            if self.config.antialias and self.config.scale < 1:
+                # the canvas samples the image about every 1/scale pixels: low-pass it first (no aliasing)
+                img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.scale**-2 - 1)))
             out[name] = img
         return out
 
@@ -402,21 +409,14 @@ class PriorBuilder:
     ) -> tuple[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], dict[str, float]]:
         """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side.
 
-        `batched` maps id(plan) to (left canvas, right canvas, matcher answers, seconds) computed ahead."""
+        `batched` maps id(plan) to (canvases, matcher answers, seconds) computed ahead."""
         cfg = self.config
         t0 = time.perf_counter()
         ahead = None if batched is None else batched.get(id(plan))
         if ahead is None:
-            left = plan.left.warp(grey[plan.left.camera])
-            right = plan.right.warp(grey[plan.right.camera])
-            matched, t_ahead = None, 0.0
+            (left, right, valid_l, valid_r), matched, t_ahead = self._canvases(plan, grey, masks), None, 0.0
         else:
-            left, right, matched, t_ahead = ahead
-        valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
-        valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
-        if cfg.normalize != "none":
-            left = normalize_image(left, valid_l, cfg.normalize, cfg.normalize_sigma)
-            right = normalize_image(right, valid_r, cfg.normalize, cfg.normalize_sigma)
+            (left, right, valid_l, valid_r), matched, t_ahead = ahead
         t_warp = time.perf_counter() - t0
         disp_l, conf_l, disp_r, conf_r, t_match = self.match_pair(plan, left, right, valid_l, valid_r, matched)
         t_match += t_ahead
@@ -452,7 +452,7 @@ class PriorBuilder:
                     raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
                                      f"{cam.width}x{cam.height}")
         grey = self._prepare(images)
-        batched = self._match_batched(grey)
+        batched = self._match_batched(grey, masks)
         if self.threads > 1 and len(self.plans) > 1:
             with ThreadPoolExecutor(self.threads) as pool:
                 results = list(pool.map(lambda p: self._pair_values(p, grey, masks, batched), self.plans))
@@ -468,6 +468,10 @@ class PriorBuilder:
             if mask is not None:
                 prior.depth[~mask] = 0
                 prior.confidence[~mask] = 0
+            if self.config.min_confidence > 0:
+                unsure = prior.confidence < self.config.min_confidence
+                prior.depth[unsure] = 0
+                prior.confidence[unsure] = 0
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
         timings["fuse"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
@@ -475,16 +479,32 @@ class PriorBuilder:
         self.last_warning = self._empty_frame_warning(out)
         return out
 
-    def _match_batched(self, grey: Mapping[str, np.ndarray]) -> dict[int, Any] | None:
+    def _canvases(
+        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """A pair's rectified images as matched (normalised if asked) and their valid pixels."""
+        cfg = self.config
+        left = plan.left.warp(grey[plan.left.camera])
+        right = plan.right.warp(grey[plan.right.camera])
+        valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
+        valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
+        if cfg.normalize != "none":
+            left = normalize_image(left, valid_l, cfg.normalize, cfg.normalize_sigma)
+            right = normalize_image(right, valid_r, cfg.normalize, cfg.normalize_sigma)
+        return left, right, valid_l, valid_r
+
+    def _match_batched(
+        self, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
+    ) -> dict[int, Any] | None:
         """A learned matcher's answers for every pair of the frame, same-size inputs batched; None for SGBM."""
         match_many = getattr(self.matcher, "match_many", None)
         if match_many is None or not self.plans:
             return None
         t0 = time.perf_counter()
-        canvases = [(p.left.warp(grey[p.left.camera]), p.right.warp(grey[p.right.camera])) for p in self.plans]
+        canvases = [self._canvases(p, grey, masks) for p in self.plans]
         t_warp = time.perf_counter() - t0
         inputs, ranges = [], []
-        for plan, (left, right) in zip(self.plans, canvases):
+        for plan, (left, right, _, _) in zip(self.plans, canvases):
             inputs += self.matcher_inputs(plan, left, right)
             ranges += [plan.pair.max_disparity] * 2
         if hasattr(self.matcher, "counts"):
@@ -492,10 +512,8 @@ class PriorBuilder:
         t0 = time.perf_counter()
         answers = match_many(inputs, ranges)
         t_each = (time.perf_counter() - t0 + t_warp) / len(self.plans)
-        return {
-            id(plan): (left, right, answers[2 * i : 2 * i + 2], t_each)
-            for i, (plan, (left, right)) in enumerate(zip(self.plans, canvases))
-        }
+        return {id(plan): (canvas, answers[2 * i : 2 * i + 2], t_each)
+                for i, (plan, canvas) in enumerate(zip(self.plans, canvases))}
 
     def _empty_frame_warning(self, out: Mapping[str, PriorMap]) -> str | None:
         """One line when the rig has pairs but the frame's prior is empty, with the likeliest cause."""
