@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 _EPS = 1e-12
+Device = torch.device | str | None  # where torch tensors are made (None: the default device)
 
 
 def _param(value: np.ndarray, like: Tensor) -> Tensor:
@@ -51,7 +52,7 @@ def _safe_norm2(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(small, torch.zeros_like(r), r), small
 
 
-def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64, device: Any = None) -> Tensor:
+def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64, device: Device = None) -> Tensor:
     """Pixel centres (u, v) of an image, shape (H, W, 2)."""
     v, u = torch.meshgrid(
         torch.arange(height, dtype=dtype, device=device),
@@ -122,7 +123,7 @@ class CameraModel:
         )
         return pts.numpy(), valid.numpy()
 
-    def ray_grid(self, dtype: torch.dtype = torch.float64, device: Any = None) -> tuple[Tensor, Tensor]:
+    def ray_grid(self, dtype: torch.dtype = torch.float64, device: Device = None) -> tuple[Tensor, Tensor]:
         """Unit rays of every pixel centre, (H, W, 3), and their validity (H, W)."""
         return self.unproject_torch(pixel_grid(self.width, self.height, dtype, device))
 
@@ -226,8 +227,8 @@ class Pinhole(CameraModel):
         return rays, converged & self.in_image(uv)
 
     @property
-    def fov_deg(self) -> float:
-        """Horizontal field of view through the principal point, degrees."""
+    def hfov_deg(self) -> float:
+        """Horizontal field of view through the principal point, degrees (the fisheyes' `fov_deg` is a cone angle)."""
         rays, _ = self.unproject(np.array([[-0.5, self.K[1, 2]], [self.width - 0.5, self.K[1, 2]]]))
         return float(np.degrees(np.arctan2(-rays[0, 0], rays[0, 2]) + np.arctan2(rays[1, 0], rays[1, 2])))
 
