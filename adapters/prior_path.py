@@ -13,7 +13,7 @@ the prior does not cover (k >= S) get no prior, which is exactly the all-zero pr
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
@@ -60,7 +60,7 @@ class PriorFeed:
         finally:
             self._prior, self._calls, self._pinned = None, 0, False
 
-    def next_prior(self, mats_dict: Any = None) -> Tensor | None:
+    def next_prior(self, mats_dict: Mapping[str, Any] | None = None) -> Tensor | None:
         """The prior of this call: from ``given``, else from ``mats_dict[PRIOR_KEY]``; None without one."""
         if not self._pinned:
             prior = mats_dict.get(PRIOR_KEY) if isinstance(mats_dict, Mapping) else None
@@ -76,7 +76,7 @@ class PriorFeed:
         return current
 
 
-def keep_missing_prior_path(module: nn.Module, name: str, reset: Any = None) -> None:
+def keep_missing_prior_path(module: nn.Module, name: str, reset: Callable[[nn.Module], object] | None = None) -> None:
     """Let ``module`` load a checkpoint without its ``name`` submodule (one saved before the prior existed).
 
     When no key of ``name`` is in the state dict, ``reset(submodule)`` runs (e.g. zero its last layer,

@@ -11,7 +11,10 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # types only: importing this registry for mmdet3d must stay light
+    from torch import nn
 
 REGISTERED_NAMES = {
     "SGDEPriorDepthNet": ("sgde_plugin.adapters.bevdepth", "PriorDepthNet"),
@@ -40,7 +43,7 @@ def _models_registry() -> Any | None:
         return None
 
 
-def inject_prior_from_config(depth_net: Any, **kwargs: Any) -> Any:
+def inject_prior_from_config(depth_net: nn.Module | dict[str, Any], **kwargs: Any) -> nn.Module:
     """``inject_prior`` for configs: ``depth_net`` may be a module or a config dict built by mmdet3d's MODELS."""
     from .bevdepth import inject_prior
 

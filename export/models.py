@@ -325,17 +325,8 @@ def _config_from_state(state: dict[str, Tensor] | None) -> dict[str, Any]:
     return config
 
 
-def build_bevdepth(
-    checkpoint: str | Path | None = None,
-    image_size: tuple[int, int] = BEVDEPTH_DEFAULT_SIZE,
-    cams: int = 6,
-    **overrides: Any,
-) -> ExportSpec:
-    """The BEVDepth-style depth branch (``PriorDepthNet``) ready for export; ``overrides`` go to its constructor.
-
-    A checkpoint may be this project's (with a ``config``) or BEVDepth's (a DepthNet state dict or a
-    whole model's, ``...depth_net.*``): channels and the deformable convolution are then read off it.
-    """
+def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+    """`build_bevdepth`, network: the PriorDepthNet (config from checkpoint and overrides, weights loaded), eval."""
     from sgde_plugin.adapters import PriorDepthNet
     from sgde_plugin.adapters.bevdepth import _depth_net_part
 
@@ -353,7 +344,59 @@ def build_bevdepth(
             net.load_state_dict(state)  # BEVDepth key names; strict, one-line refusal
         except InputError as exc:
             raise InputError(checkpoint, exc.key, exc.problem) from None
-    net.eval()
+    return net.eval(), info
+
+
+def _bevdepth_metadata(net: Any, info: dict[str, Any], cams: int, image_size: tuple[int, int]) -> dict[str, str]:
+    """`build_bevdepth`, metadata: the ONNX metadata (inputs, outputs, layout, depth bins, prior encoding)."""
+    h, w = image_size
+    s = net.downsample
+    fh, fw = h // s, w // s
+    cin = net.reduce_conv[0].in_channels
+    return _common_metadata("bevdepth", net, info) | {
+        "sgde.inputs": json.dumps({
+            "features": f"float32 [B*N,{cin},{fh},{fw}] image features at stride {s}",
+            "prior": f"float32 [B,N,{h},{w}] metres at the augmented image size, 0 = no prior",
+            "intrin_mats": "float32 [B,S,N,4,4] (BEVDepth mats_dict; sweep 0 is used)",
+            "ida_mats": "float32 [B,S,N,4,4]", "sensor2ego_mats": "float32 [B,S,N,4,4] camera -> ego",
+            "bda_mat": "float32 [B,4,4]",
+        }),
+        "sgde.outputs": json.dumps({
+            "depth_logits": f"float32 [B*N,{net.depth_channels},{fh},{fw}] logits of the depth bins",
+            "context": f"float32 [B*N,{net.context_channels},{fh},{fw}]",
+        }),
+        "sgde.input_layout": ("NCHW features with batch and cameras folded (b * N + n); matrices as BEVDepth's "
+                              "mats_dict [B, sweeps, N, 4, 4]; one sweep per run"),
+        "sgde.depth_range": json.dumps(list(net.d_bound)),
+        "sgde.depth_bins": json.dumps({"d_bound": list(net.d_bound), "bins": net.depth_channels,
+                                       "bin_k": "[start + k*step, start + (k+1)*step) metres"}),
+        "sgde.prior_normalisation": json.dumps({
+            "scheme": f"min non-zero per {s}x{s} cell, clip(prior_m / max_depth, 0, 1) + validity; 0 = none",
+            "max_depth": net.prior_encoder.encoding.max_depth, "validity_channel": True}),
+        "sgde.cameras_per_sample": str(cams),
+    }
+
+
+BEVDEPTH_AXES = {
+    "features": {0: "batch_x_cams"}, "prior": {0: "batch", 1: "cams"},
+    "intrin_mats": {0: "batch", 1: "sweeps", 2: "cams"}, "ida_mats": {0: "batch", 1: "sweeps", 2: "cams"},
+    "sensor2ego_mats": {0: "batch", 1: "sweeps", 2: "cams"}, "bda_mat": {0: "batch"},
+    "depth_logits": {0: "batch_x_cams"}, "context": {0: "batch_x_cams"},
+}
+
+
+def build_bevdepth(
+    checkpoint: str | Path | None = None,
+    image_size: tuple[int, int] = BEVDEPTH_DEFAULT_SIZE,
+    cams: int = 6,
+    **overrides: Any,
+) -> ExportSpec:
+    """The BEVDepth-style depth branch (``PriorDepthNet``) ready for export; ``overrides`` go to its constructor.
+
+    A checkpoint may be this project's (with a ``config``) or BEVDepth's (a DepthNet state dict or a
+    whole model's, ``...depth_net.*``): channels and the deformable convolution are then read off it.
+    """
+    net, info = _bevdepth_net(checkpoint, overrides)
     h, w = image_size
     s = net.downsample
     if h % s or w % s:
@@ -391,34 +434,8 @@ def build_bevdepth(
         feats = (cells.repeat(1, reps, 1, 1)[:, :cin] - 0.5) * 4.0
         return label, (feats, prior.reshape(batch, cams, h, w), *mats_tuple(batch))
 
-    metadata = _common_metadata("bevdepth", net, info) | {
-        "sgde.inputs": json.dumps({
-            "features": f"float32 [B*N,{cin},{fh},{fw}] image features at stride {s}",
-            "prior": f"float32 [B,N,{h},{w}] metres at the augmented image size, 0 = no prior",
-            "intrin_mats": "float32 [B,S,N,4,4] (BEVDepth mats_dict; sweep 0 is used)",
-            "ida_mats": "float32 [B,S,N,4,4]", "sensor2ego_mats": "float32 [B,S,N,4,4] camera -> ego",
-            "bda_mat": "float32 [B,4,4]",
-        }),
-        "sgde.outputs": json.dumps({
-            "depth_logits": f"float32 [B*N,{net.depth_channels},{fh},{fw}] logits of the depth bins",
-            "context": f"float32 [B*N,{net.context_channels},{fh},{fw}]",
-        }),
-        "sgde.input_layout": ("NCHW features with batch and cameras folded (b * N + n); matrices as BEVDepth's "
-                              "mats_dict [B, sweeps, N, 4, 4]; one sweep per run"),
-        "sgde.depth_range": json.dumps(list(net.d_bound)),
-        "sgde.depth_bins": json.dumps({"d_bound": list(net.d_bound), "bins": net.depth_channels,
-                                       "bin_k": "[start + k*step, start + (k+1)*step) metres"}),
-        "sgde.prior_normalisation": json.dumps({
-            "scheme": f"min non-zero per {s}x{s} cell, clip(prior_m / max_depth, 0, 1) + validity; 0 = none",
-            "max_depth": net.prior_encoder.encoding.max_depth, "validity_channel": True}),
-        "sgde.cameras_per_sample": str(cams),
-    }
-    axes = {
-        "features": {0: "batch_x_cams"}, "prior": {0: "batch", 1: "cams"},
-        "intrin_mats": {0: "batch", 1: "sweeps", 2: "cams"}, "ida_mats": {0: "batch", 1: "sweeps", 2: "cams"},
-        "sensor2ego_mats": {0: "batch", 1: "sweeps", 2: "cams"}, "bda_mat": {0: "batch"},
-        "depth_logits": {0: "batch_x_cams"}, "context": {0: "batch_x_cams"},
-    }
+    metadata = _bevdepth_metadata(net, info, cams, (h, w))
+    axes = {k: dict(v) for k, v in BEVDEPTH_AXES.items()}
     extra = {"image_size": (h, w), "feature_size": (fh, fw), "cams": cams}
     if net.deformable:
         extra["min_opset"] = DEFORM_OPSET

@@ -10,7 +10,7 @@ comparison raises ParityError carrying every measured number.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -124,8 +124,3 @@ def check_parity(
     if raise_on_failure and not all(r.ok for r in results):
         raise ParityError(results)
     return results
-
-
-def results_as_dicts(results: Sequence[ParityResult]) -> list[dict]:
-    """JSON-able form of the results."""
-    return [asdict(r) | {"relative_to_range": r.relative_to_range} for r in results]

@@ -3,7 +3,7 @@
 The maths of each model is written once, in torch (batched, differentiable, any device and float
 dtype). The NumPy methods `project` / `unproject` run the same code on float64 CPU tensors.
 Conventions: camera frame x right, y down, z forward; the centre of the top-left pixel is (0, 0);
-an image covers [-0.5, W - 0.5] x [-0.5, H - 0.5].
+an image covers [-0.5, W - 0.5] x [-0.5, H - 0.5]. Checking `rig.json` fields: `sgde_plugin.rigfile`.
 """
 
 from __future__ import annotations
@@ -16,9 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import InputError
-
 _EPS = 1e-12
+Device = torch.device | str | None  # where torch tensors are made (None: the default device)
 
 
 def _param(value: np.ndarray, like: Tensor) -> Tensor:
@@ -53,7 +52,7 @@ def _safe_norm2(x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     return torch.where(small, torch.zeros_like(r), r), small
 
 
-def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64, device: Any = None) -> Tensor:
+def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64, device: Device = None) -> Tensor:
     """Pixel centres (u, v) of an image, shape (H, W, 2)."""
     v, u = torch.meshgrid(
         torch.arange(height, dtype=dtype, device=device),
@@ -124,7 +123,7 @@ class CameraModel:
         )
         return pts.numpy(), valid.numpy()
 
-    def ray_grid(self, dtype: torch.dtype = torch.float64, device: Any = None) -> tuple[Tensor, Tensor]:
+    def ray_grid(self, dtype: torch.dtype = torch.float64, device: Device = None) -> tuple[Tensor, Tensor]:
         """Unit rays of every pixel centre, (H, W, 3), and their validity (H, W)."""
         return self.unproject_torch(pixel_grid(self.width, self.height, dtype, device))
 
@@ -228,8 +227,8 @@ class Pinhole(CameraModel):
         return rays, converged & self.in_image(uv)
 
     @property
-    def fov_deg(self) -> float:
-        """Horizontal field of view through the principal point, degrees."""
+    def hfov_deg(self) -> float:
+        """Horizontal field of view through the principal point, degrees (the fisheyes' `fov_deg` is a cone angle)."""
         rays, _ = self.unproject(np.array([[-0.5, self.K[1, 2]], [self.width - 0.5, self.K[1, 2]]]))
         return float(np.degrees(np.arctan2(-rays[0, 0], rays[0, 2]) + np.arctan2(rays[1, 0], rays[1, 2])))
 
@@ -441,102 +440,3 @@ class Camera:
 
     def __hash__(self) -> int:
         return hash(self.name)
-
-
-def _matrix(entry: dict, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
-    if key not in entry or entry[key] is None:
-        raise InputError(None, f"{where}.{key}", "missing")
-    try:
-        arr = np.asarray(entry[key], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(None, f"{where}.{key}", "not a numeric array") from None
-    if arr.shape != shape:
-        raise InputError(None, f"{where}.{key}", f"has shape {list(arr.shape)}, expected {list(shape)}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(None, f"{where}.{key}", "contains NaN or infinity")
-    return arr
-
-
-def _vector(entry: dict, key: str, where: str, lengths: tuple[int, ...] | None = None) -> np.ndarray:
-    value = entry.get(key)
-    if value is None:
-        raise InputError(None, f"{where}.{key}", "missing")
-    try:
-        arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(None, f"{where}.{key}", "not a numeric list") from None
-    if lengths is not None and arr.shape[0] not in lengths:
-        expected = " or ".join(map(str, lengths))
-        raise InputError(None, f"{where}.{key}", f"has {arr.shape[0]} values, expected {expected}")
-    if arr.shape[0] == 0 or not np.all(np.isfinite(arr)):
-        raise InputError(None, f"{where}.{key}", "empty or not finite")
-    return arr
-
-
-MAX_PIXELS = 1e6  # no focal length or principal point of a real camera is this large
-MAX_IMAGE_SIDE = 65535  # the largest PNG/JPEG side OpenCV writes
-
-
-def _intrinsic_matrix(entry: dict, where: str) -> np.ndarray:
-    if "K" not in entry or entry["K"] is None:
-        raise InputError(None, f"{where}.K", "missing")
-    try:
-        K = np.asarray(entry["K"], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(None, f"{where}.K", "not a numeric matrix") from None
-    if K.shape != (3, 3):
-        raise InputError(None, f"{where}.K", f"is not a square 3x3 matrix (shape {list(K.shape)})")
-    if not np.all(np.isfinite(K)):
-        raise InputError(None, f"{where}.K", "contains NaN or infinity")
-    if np.abs(K).max() > MAX_PIXELS:
-        raise InputError(None, f"{where}.K", f"has an absurd value ({np.abs(K).max():.3g} > {MAX_PIXELS:g} pixels)")
-    if abs(np.linalg.det(K)) < 1e-9 or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(None, f"{where}.K", "is singular (focal lengths must be positive)")
-    if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise InputError(None, f"{where}.K", "last row must be [0, 0, 1] and K[1][0] must be 0")
-    return K
-
-
-def _size(entry: dict, key: str, where: str) -> int:
-    value = entry.get(key)
-    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-        raise InputError(None, f"{where}.{key}", "missing or not a positive integer")
-    if value > MAX_IMAGE_SIDE:
-        raise InputError(None, f"{where}.{key}", f"{value} is absurd (more than {MAX_IMAGE_SIDE} pixels)")
-    return value
-
-
-def _fov(entry: dict, where: str) -> float:
-    value = entry.get("fov_deg")
-    if not isinstance(value, (int, float)) or not (0 < value < 360):
-        raise InputError(None, f"{where}.fov_deg", "missing or not in (0, 360) degrees")
-    return float(value)
-
-
-def intrinsics_from_dict(entry: dict, where: str = "camera") -> CameraModel:
-    """Build and check a camera model from its `rig.json` fields; InputError names the bad key."""
-    model = entry.get("model")
-    if model not in MODELS:
-        raise InputError(None, f"{where}.model", f"unknown camera model {model!r} (expected {', '.join(MODELS)})")
-    w, h = _size(entry, "width", where), _size(entry, "height", where)
-    if model == "pinhole":
-        dist = entry.get("dist")
-        d = None
-        if dist is not None:
-            d = _vector(entry, "dist", where, (4, 5))
-            d = np.pad(d, (0, 5 - d.shape[0]))
-        return Pinhole(w, h, _intrinsic_matrix(entry, where), d)
-    if model == "kannala_brandt":
-        d = np.zeros(4) if entry.get("dist") is None else _vector(entry, "dist", where, (4,))
-        return KannalaBrandt(w, h, _intrinsic_matrix(entry, where), d, _fov(entry, where))
-    affine = _vector(entry, "affine", where, (3,))
-    if abs(affine[0] - affine[1] * affine[2]) < 1e-9:
-        raise InputError(None, f"{where}.affine", "is singular (c - d * e = 0)")
-    return Ocam(
-        w, h,
-        poly=_vector(entry, "poly", where),
-        inv_poly=_vector(entry, "inv_poly", where),
-        center=_vector(entry, "center", where, (2,)),
-        affine=affine,
-        fov_deg=_fov(entry, where),
-    )

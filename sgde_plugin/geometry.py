@@ -15,11 +15,6 @@ def rotation_error(R: np.ndarray) -> float:
     return float(np.abs(R.T @ R - np.eye(3)).max())
 
 
-def is_rotation(R: np.ndarray, tol: float = ORTHONORMAL_TOL) -> bool:
-    """True if R is orthonormal within `tol` with determinant +1."""
-    return rotation_error(R) <= tol
-
-
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Homogeneous transform(s) (..., 4, 4) from rotation(s) (..., 3, 3) and translation(s) (..., 3)."""
     R = np.asarray(R, dtype=np.float64)

@@ -21,15 +21,17 @@ from .splat import warp_depth as splat_warp_depth
 METRIC_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 OMNIMVS_KEYS = (">1", ">3", ">5", "mae", "rms")
 
+ArrayLike = np.ndarray | torch.Tensor  # NumPy array or torch tensor (any device, float dtype); nested lists also work
 
-def _np(x: Any) -> np.ndarray:
+
+def _np(x: ArrayLike) -> np.ndarray:
     """Any array-like or tensor -> float64 NumPy array."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.asarray(x, dtype=np.float64)
 
 
-def _mask(x: Any, shape: tuple[int, ...]) -> np.ndarray:
+def _mask(x: ArrayLike | None, shape: tuple[int, ...]) -> np.ndarray:
     if x is None:
         return np.ones(shape, dtype=bool)
     if isinstance(x, torch.Tensor):
@@ -39,9 +41,9 @@ def _mask(x: Any, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def depth_metrics(
-    pred: Any,
-    gt: Any,
-    mask: Any = None,
+    pred: ArrayLike,
+    gt: ArrayLike,
+    mask: ArrayLike | None = None,
     max_depth: float = 80.0,
     min_depth: float = 1e-3,
     median_scaling: bool = False,
@@ -97,7 +99,7 @@ def average_metrics(results: Iterable[Mapping[str, float]]) -> dict[str, float]:
 
 # --- OmniMVS ------------------------------------------------------------------------------------
 
-def inverse_depth_index(depth: Any, min_depth: float = 0.5, max_depth: float = math.inf,
+def inverse_depth_index(depth: ArrayLike, min_depth: float = 0.5, max_depth: float = math.inf,
                         num_invdepth: int = 192) -> np.ndarray:
     """OmniMVS inverse-depth index: (1/d - 1/max_depth) / step, step = (1/min - 1/max) / (N - 1)."""
     d = _np(depth)
@@ -108,9 +110,9 @@ def inverse_depth_index(depth: Any, min_depth: float = 0.5, max_depth: float = m
 
 
 def omnimvs_metrics(
-    pred: Any,
-    gt: Any,
-    mask: Any = None,
+    pred: ArrayLike,
+    gt: ArrayLike,
+    mask: ArrayLike | None = None,
     min_depth: float = 0.5,
     max_depth: float = math.inf,
     num_invdepth: int = 192,
@@ -152,10 +154,10 @@ def omnimvs_metrics(
 # --- Dep Con ------------------------------------------------------------------------------------
 
 def warp_depth(
-    depth_src: Any,
+    depth_src: ArrayLike,
     src: Camera | CameraModel,
     dst: Camera | CameraModel,
-    src_to_dst: Any,
+    src_to_dst: ArrayLike,
 ) -> np.ndarray:
     """Forward-warp a depth map of camera ``src`` into camera ``dst``: [H_dst, W_dst], 0 = nothing.
 
@@ -168,13 +170,13 @@ def warp_depth(
 
 
 def dep_con_terms(
-    pred: Any,
-    pred_neighbour: Any,
-    gt: Any,
+    pred: ArrayLike,
+    pred_neighbour: ArrayLike,
+    gt: ArrayLike,
     camera: Camera | CameraModel,
     neighbour: Camera | CameraModel,
-    neighbour_to_camera: Any,
-    mask: Any = None,
+    neighbour_to_camera: ArrayLike,
+    mask: ArrayLike | None = None,
     max_depth: float = math.inf,
 ) -> tuple[float, int]:
     """Sum of |D - warp(D_neighbour)| / D_gt and the pixel count for one ordered camera pair."""
@@ -185,13 +187,13 @@ def dep_con_terms(
 
 
 def dep_con(
-    pred: Any,
-    pred_neighbour: Any,
-    gt: Any,
+    pred: ArrayLike,
+    pred_neighbour: ArrayLike,
+    gt: ArrayLike,
     camera: Camera | CameraModel,
     neighbour: Camera | CameraModel,
-    neighbour_to_camera: Any,
-    mask: Any = None,
+    neighbour_to_camera: ArrayLike,
+    mask: ArrayLike | None = None,
     max_depth: float = math.inf,
 ) -> dict[str, float]:
     """Depth consistency (MCDP, as used by SGDE): mean |D - warp(D_neighbour)| / D_gt over overlap pixels.
@@ -206,8 +208,8 @@ def dep_con(
 
 
 def rig_dep_con(
-    preds: Mapping[str, Any],
-    gts: Mapping[str, Any],
+    preds: Mapping[str, ArrayLike],
+    gts: Mapping[str, ArrayLike],
     cameras: Mapping[str, Camera],
     pairs: Sequence[tuple[str, str]],
     max_depth: float = math.inf,

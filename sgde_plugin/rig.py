@@ -10,15 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from .cameras import Camera, _matrix, intrinsics_from_dict
+from .cameras import Camera
 from .errors import InputError
-from .geometry import ORTHONORMAL_TOL, invert_transform, rotation_error
+from .geometry import invert_transform
 from .io import atomic_write_text, image_size, is_plain_name, read_depth_png, read_image, read_mask
 from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
+from .panorama import load_panorama_depth
+from .rigfile import MAX_MOUNT_M, intrinsics_from_dict, transform_field
 
 FORMAT = "sgde-rig/1"
-MAX_MOUNT_M = 1e3  # a camera mounted farther than this from the ego origin is a unit or typing error
-MAX_WORLD_M = 1e8  # ego positions beyond this are not on Earth (UTM-sized coordinates are ~1e7 m)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
@@ -186,8 +186,6 @@ class Rig:
         if path is None:
             return None
         if Path(path).suffix.lower() in (".tif", ".tiff"):
-            from .readers.omnimvs import load_panorama_depth
-
             return load_panorama_depth(path, self.camera(camera))
         return read_depth_png(path)
 
@@ -205,10 +203,6 @@ class Rig:
     def with_extra(self, **extra: Any) -> Rig:
         """The same rig with top-level keys added to `rig.json` (e.g. a calibration block)."""
         return replace(self, extra={**dict(self.extra), **extra})
-
-    def subset_frames(self, start: int, stop: int) -> Rig:
-        """The same rig with frames[start:stop]."""
-        return replace(self, frames=self.frames[start:stop])
 
     # --- serialisation ----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -247,21 +241,6 @@ def ring_subset_pairs(ring: tuple[str, ...] | list[str], present: tuple[str, ...
     return tuple(p for p in ring_pairs(ring) if p[0] in keep and p[1] in keep)
 
 
-def _transform(entry: dict, key: str, where: str, required: bool = True, max_m: float = MAX_WORLD_M) -> np.ndarray:
-    if key not in entry and not required:
-        return np.eye(4)
-    T = _matrix(entry, key, (4, 4), where)
-    if not np.allclose(T[3], [0, 0, 0, 1]):
-        raise InputError(None, f"{where}.{key}", "last row must be [0, 0, 0, 1]")
-    err = rotation_error(T[:3, :3])
-    if err > ORTHONORMAL_TOL:
-        raise InputError(None, f"{where}.{key}", f"rotation is not orthonormal (error {err:.2g} > 1e-6)")
-    if np.linalg.norm(T[:3, 3]) > max_m:
-        raise InputError(None, f"{where}.{key}", f"translation of {np.linalg.norm(T[:3, 3]):.3g} m is absurd "
-                         f"(more than {max_m:g} m)")
-    return T
-
-
 def _captures(doc: Any, where: str, names: set[str]) -> dict[str, CameraCapture]:
     """Parse `frames[].cameras` (camera -> {timestamp_us, ego_to_world}); every key optional."""
     if not isinstance(doc, dict):
@@ -276,17 +255,13 @@ def _captures(doc: Any, where: str, names: set[str]) -> dict[str, CameraCapture]
         ts = entry.get("timestamp_us")
         if ts is not None and (not isinstance(ts, int) or isinstance(ts, bool)):
             raise InputError(None, f"{here}.timestamp_us", "not an integer")
-        pose = _transform(entry, "ego_to_world", here) if "ego_to_world" in entry else None
+        pose = transform_field(entry, "ego_to_world", here) if "ego_to_world" in entry else None
         out[name] = CameraCapture(ts, pose)
     return out
 
 
-def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
-    """Build and check a Rig from a parsed `rig.json`; InputError names the offending key."""
-    if not isinstance(doc, dict):
-        raise InputError(None, None, "top level is not a JSON object")
-    if doc.get("format") != FORMAT:
-        raise InputError(None, "format", f"expected {FORMAT!r}, found {doc.get('format')!r}")
+def _cameras_from_doc(doc: dict) -> tuple[Camera, ...]:
+    """Stage 1 of `rig_from_dict`: the `cameras` list (plain, unique names; intrinsics; mounts)."""
     cams_doc = doc.get("cameras")
     if not isinstance(cams_doc, list) or not cams_doc:
         raise InputError(None, "cameras", "missing or empty")
@@ -304,69 +279,87 @@ def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
         where = f"cameras[{name}]"
         if any(c.name == name for c in cameras):
             raise InputError(None, where, "duplicate camera name")
-        pose = _transform(entry, "sensor_to_ego", where, max_m=MAX_MOUNT_M)
+        pose = transform_field(entry, "sensor_to_ego", where, max_m=MAX_MOUNT_M)
         cameras.append(Camera(name, intrinsics_from_dict(entry, where), pose))
-    names = {c.name for c in cameras}
+    return tuple(cameras)
 
+
+def _ring_from_doc(ring_doc: Any, names: set[str]) -> tuple[str, ...]:
+    """Stage 2a of `rig_from_dict`: a `ring` of two or more distinct, existing cameras."""
+    if not isinstance(ring_doc, list) or not all(isinstance(n, str) for n in ring_doc):
+        raise InputError(None, "ring", "not a list of camera names")
+    for n in ring_doc:
+        if n not in names:
+            raise InputError(None, "ring", f"camera {n!r} does not exist")
+    if len(set(ring_doc)) != len(ring_doc):
+        raise InputError(None, "ring", "names a camera twice")
+    if len(ring_doc) < 2:
+        raise InputError(None, "ring", "needs at least two cameras (a ring of one has no adjacent pair)")
+    return tuple(ring_doc)
+
+
+def _pairs_from_doc(pairs_doc: Any, names: set[str]) -> tuple[tuple[str, str], ...]:
+    """Stage 2b of `rig_from_dict`: explicit `pairs` of two different, existing cameras, none repeated."""
+    if not isinstance(pairs_doc, list):
+        raise InputError(None, "pairs", "not a list of pairs")
+    pairs_l: list[tuple[str, str]] = []
+    for i, p in enumerate(pairs_doc):
+        if not (isinstance(p, list) and len(p) == 2 and all(isinstance(n, str) for n in p)) or p[0] == p[1]:
+            raise InputError(None, f"pairs[{i}]", "not a pair of two different camera names")
+        for n in p:
+            if n not in names:
+                raise InputError(None, f"pairs[{i}]", f"camera {n!r} does not exist")
+        if any(sorted(p) == sorted(q) for q in pairs_l):
+            raise InputError(None, f"pairs[{i}]", f"repeats the pair {p[0]!r}-{p[1]!r}")
+        pairs_l.append((p[0], p[1]))
+    if not pairs_l:
+        raise InputError(None, "pairs", "lists no pair (a rig needs at least one adjacent pair)")
+    return tuple(pairs_l)
+
+
+def _frame_from_doc(entry: Any, i: int, seen: set[str], names: set[str]) -> Frame:
+    """Stage 3 of `rig_from_dict`, one `frames[i]` (its id is added to `seen`)."""
+    where = f"frames[{i}]"
+    if not isinstance(entry, dict):
+        raise InputError(None, where, "not an object")
+    fid = entry.get("id")
+    if not isinstance(fid, str) or not is_plain_name(fid):
+        raise InputError(None, f"{where}.id", "missing or not a plain file name")
+    if fid in seen:
+        raise InputError(None, f"{where}.id", f"duplicate frame id {fid!r}")
+    seen.add(fid)
+    ts = entry.get("timestamp_us", i)
+    if not isinstance(ts, int) or isinstance(ts, bool):
+        raise InputError(None, f"{where}.timestamp_us", "not an integer")
+    pose = transform_field(entry, "ego_to_world", f"frames[{fid}]", required=False)
+    captures = _captures(entry.get("cameras", {}), f"frames[{fid}].cameras", names)
+    extra = {k: v for k, v in entry.items() if k not in _FRAME_KEYS}
+    return Frame(fid, ts, pose, extra=extra, cameras=captures)
+
+
+_FRAME_KEYS = {"id", "timestamp_us", "ego_to_world", "cameras"}
+_RIG_KEYS = ("format", "cameras", "ring", "pairs", "frames")
+
+
+def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
+    """Build and check a Rig from a parsed `rig.json`; InputError names the offending key."""
+    if not isinstance(doc, dict):
+        raise InputError(None, None, "top level is not a JSON object")
+    if doc.get("format") != FORMAT:
+        raise InputError(None, "format", f"expected {FORMAT!r}, found {doc.get('format')!r}")
+    cameras = _cameras_from_doc(doc)
+    names = {c.name for c in cameras}
     if ("ring" in doc) == ("pairs" in doc):
         raise InputError(None, "ring/pairs", "a rig has exactly one of 'ring' and 'pairs'")
-    ring = None
-    if "ring" in doc:
-        ring_doc = doc["ring"]
-        if not isinstance(ring_doc, list) or not all(isinstance(n, str) for n in ring_doc):
-            raise InputError(None, "ring", "not a list of camera names")
-        for n in ring_doc:
-            if n not in names:
-                raise InputError(None, "ring", f"camera {n!r} does not exist")
-        if len(set(ring_doc)) != len(ring_doc):
-            raise InputError(None, "ring", "names a camera twice")
-        if len(ring_doc) < 2:
-            raise InputError(None, "ring", "needs at least two cameras (a ring of one has no adjacent pair)")
-        ring = tuple(ring_doc)
-        pairs = ring_pairs(ring)
-    else:
-        pairs_doc = doc["pairs"]
-        if not isinstance(pairs_doc, list):
-            raise InputError(None, "pairs", "not a list of pairs")
-        pairs_l = []
-        for i, p in enumerate(pairs_doc):
-            if not (isinstance(p, list) and len(p) == 2 and all(isinstance(n, str) for n in p)) or p[0] == p[1]:
-                raise InputError(None, f"pairs[{i}]", "not a pair of two different camera names")
-            for n in p:
-                if n not in names:
-                    raise InputError(None, f"pairs[{i}]", f"camera {n!r} does not exist")
-            if any(sorted(p) == sorted(q) for q in pairs_l):
-                raise InputError(None, f"pairs[{i}]", f"repeats the pair {p[0]!r}-{p[1]!r}")
-            pairs_l.append((p[0], p[1]))
-        if not pairs_l:
-            raise InputError(None, "pairs", "lists no pair (a rig needs at least one adjacent pair)")
-        pairs = tuple(pairs_l)
-
+    ring = _ring_from_doc(doc["ring"], names) if "ring" in doc else None
+    pairs = ring_pairs(ring) if ring is not None else _pairs_from_doc(doc["pairs"], names)
     frames_doc = doc.get("frames", [])
     if not isinstance(frames_doc, list):
         raise InputError(None, "frames", "not a list")
-    frames: list[Frame] = []
     seen: set[str] = set()
-    known = {"id", "timestamp_us", "ego_to_world", "cameras"}
-    for i, entry in enumerate(frames_doc):
-        where = f"frames[{i}]"
-        if not isinstance(entry, dict):
-            raise InputError(None, where, "not an object")
-        fid = entry.get("id")
-        if not isinstance(fid, str) or not is_plain_name(fid):
-            raise InputError(None, f"{where}.id", "missing or not a plain file name")
-        if fid in seen:
-            raise InputError(None, f"{where}.id", f"duplicate frame id {fid!r}")
-        seen.add(fid)
-        ts = entry.get("timestamp_us", i)
-        if not isinstance(ts, int) or isinstance(ts, bool):
-            raise InputError(None, f"{where}.timestamp_us", "not an integer")
-        pose = _transform(entry, "ego_to_world", f"frames[{fid}]", required=False)
-        captures = _captures(entry.get("cameras", {}), f"frames[{fid}].cameras", names)
-        extra = {k: v for k, v in entry.items() if k not in known}
-        frames.append(Frame(fid, ts, pose, extra=extra, cameras=captures))
-    extra = {k: v for k, v in doc.items() if k not in ("format", "cameras", "ring", "pairs", "frames")}
-    return Rig(tuple(cameras), pairs, tuple(frames), ring, root, {}, extra)
+    frames = tuple(_frame_from_doc(entry, i, seen, names) for i, entry in enumerate(frames_doc))
+    extra = {k: v for k, v in doc.items() if k not in _RIG_KEYS}
+    return Rig(cameras, pairs, frames, ring, root, {}, extra)
 
 
 def read_rig_json(path: str | Path, root: Path | None = None) -> Rig:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_cache_store import build, tiny_rig
+from cache_fixtures import build, tiny_rig
 from test_rig import make_rig, write_folder
 
 from sgde_plugin.cache.dataset import PriorDataset

@@ -14,7 +14,7 @@ import threading
 import numpy as np
 import pytest
 import zarr
-from test_cache_store import ALGO, CONFIG, build, tiny_rig
+from cache_fixtures import ALGO, CONFIG, build, tiny_rig
 
 from sgde_plugin.cache.fingerprints import fingerprint
 from sgde_plugin.cache.inspection import verify_cache

@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from test_cache_store import build, content, tiny_rig
+from cache_fixtures import build, content, tiny_rig
 
 from sgde_plugin.cache.inspection import cache_info, verify_cache
 from sgde_plugin.cache.store import PriorCache

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from test_cache_store import ALGO, CONFIG, tiny_rig
+from cache_fixtures import ALGO, CONFIG, tiny_rig
 from torch.utils.data import DataLoader
 
 from sgde_plugin.cache.build import build_cache

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sgde_plugin.cache.resample import ida_matrix, resize_depth, resize_matrix, warp_depth, warp_image
+from sgde_plugin.cache.resample import ida_matrix, resize_depth, resize_matrix, warp_depth_affine, warp_image
 
 
 def test_min_pool_of_valid_values_hand_computed():
@@ -29,7 +29,7 @@ def test_no_depth_is_invented_across_edges_or_holes(out_hw):
     d[rng.random(d.shape) < 0.2] = 0
     d = d.astype(np.float32)
     for m in (resize_matrix(d.shape, out_hw), ida_matrix(out_hw[1] / 53, (1, 0), True, 7.0, out_hw)):
-        out, = warp_depth(d, m, out_hw)
+        out, = warp_depth_affine(d, m, out_hw)
         assert out.shape == out_hw
         assert set(np.unique(out)) <= {0.0, 10.0, 40.0}
 
@@ -39,10 +39,10 @@ def test_flip_and_rotation_are_exact_permutations():
     d = (rng.random((16, 16)) * 50).astype(np.float32)
     img = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)
     flip = ida_matrix(1.0, flip=True, out_hw=(16, 16))
-    np.testing.assert_array_equal(warp_depth(d, flip, (16, 16))[0], d[:, ::-1])
+    np.testing.assert_array_equal(warp_depth_affine(d, flip, (16, 16))[0], d[:, ::-1])
     np.testing.assert_array_equal(warp_image(img, flip, (16, 16)), img[:, ::-1])
     rot = ida_matrix(1.0, rotate_deg=90.0, out_hw=(16, 16))
-    np.testing.assert_array_equal(warp_depth(d, rot, (16, 16))[0], np.rot90(d, -1))
+    np.testing.assert_array_equal(warp_depth_affine(d, rot, (16, 16))[0], np.rot90(d, -1))
     np.testing.assert_array_equal(warp_image(img, rot, (16, 16)), np.rot90(img, -1))
 
 
@@ -51,7 +51,7 @@ def test_bevdepth_4x4_matrix_equals_3x3():
     m4 = np.eye(4)
     m4[:2, :2], m4[:2, 3] = m3[:2, :2], m3[:2, 2]
     d = (np.random.default_rng(2).random((225, 400)) * 60).astype(np.float32)
-    np.testing.assert_array_equal(warp_depth(d, m3, (64, 176))[0], warp_depth(d, m4, (64, 176))[0])
+    np.testing.assert_array_equal(warp_depth_affine(d, m3, (64, 176))[0], warp_depth_affine(d, m4, (64, 176))[0])
 
 
 def test_image_and_depth_land_on_the_same_pixels():
@@ -66,7 +66,7 @@ def test_image_and_depth_land_on_the_same_pixels():
     interior = np.zeros(out_hw, dtype=bool)
     interior[3:-3, 3:-3] = True
     for depth, to_col, expected in ((cols + 1.0, lambda d: d - 1.0, -0.5), (w - cols, lambda d: w - d, 0.5)):
-        dep, = warp_depth(depth, m, out_hw)
+        dep, = warp_depth_affine(depth, m, out_hw)
         both = (dep > 0) & (img > 2) & (img < w - 3) & interior
         assert both.mean() > 0.5
         diff = to_col(dep) - img

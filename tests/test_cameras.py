@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from sgde_plugin.cameras import KannalaBrandt, Ocam, Pinhole, intrinsics_from_dict, pixel_grid
+from sgde_plugin.cameras import KannalaBrandt, Ocam, Pinhole, pixel_grid
 from sgde_plugin.errors import InputError
+from sgde_plugin.rigfile import intrinsics_from_dict
 
 K_PIN = np.array([[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.28, 0.09, 0.0012, -0.0009, -0.015])

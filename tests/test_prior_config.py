@@ -27,7 +27,8 @@ CHANGED = {
     "p1": 4, "p2": 64, "uniqueness": 5, "speckle_window": 50, "speckle_range": 3, "lr_max_diff": 1.5,
     "border_px": 3, "refine_iterations": 2, "min_zncc": 0.4, "max_abs_diff": 10.0, "min_texture": 0.25,
     "min_region_px": 100, "color": False, "margin_px": 4, "max_azimuth_deg": 70.0, "max_elevation_deg": 40.0,
-    "fisheye": "virtual", "confidence_disparity_px": 4.0, "edge_jump_px": 2.0, "normalize": "local",
+    "fisheye": "virtual", "confidence_disparity_px": 4.0, "edge_jump_px": 2.0, "normalize": "local", "antialias": True,
+    "min_confidence": 0.3,
     "normalize_sigma": 6.0,
 }
 
@@ -146,7 +147,7 @@ def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_p
     assert cli_main([*argv, "--min-region-px", "120"]) == 0
     capsys.readouterr()
     rig = load_rig_with_override(str(root), true_rig)
-    expected = PriorConfig(max_depth=200.0, uniqueness=12, min_region_px=120)
+    expected = PriorConfig(**{**PRESETS["ddad"], "uniqueness": 12, "min_region_px": 120})
     assert PriorCache(out).fingerprint == fingerprint(rig, expected)
     # the same settings from another file are the same cache; a changed file is refused, naming the change
     save_prior_config(expected, tmp_path / "same.yaml")

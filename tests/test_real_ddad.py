@@ -21,7 +21,9 @@ def test_scene_01_is_a_partial_rig_with_two_pairs(capsys: pytest.CaptureFixture)
     assert rig.pairs == (("CAMERA_01", "CAMERA_06"), ("CAMERA_05", "CAMERA_01")) and rig.ring is None
 
 
-def test_scene_02_cameras_keep_their_datum_poses() -> None:
+def test_scene_02_cameras_keep_their_datum_poses(capsys: pytest.CaptureFixture) -> None:
+    assert main(["validate", str(SAMPLE / "scene_02")]) == 0
+    assert "6 cameras, 6 adjacent pairs, 3 frames" in capsys.readouterr().out
     rig = load_rig(SAMPLE / "scene_02")
     assert len(rig.camera_names) == 6 and rig.ring is not None
     for fr in rig.frames:

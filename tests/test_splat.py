@@ -124,3 +124,29 @@ def test_quaternion_to_rotation_batched_equals_one_by_one() -> None:
         np.testing.assert_allclose(Ri, quaternion_to_rotation(qi), atol=1e-15)
         np.testing.assert_allclose(Ri @ Ri.T, np.eye(3), atol=1e-12)
         np.testing.assert_allclose(abs(rotation_to_quaternion(Ri) @ (qi / np.linalg.norm(qi))), 1.0, atol=1e-12)
+
+
+def test_core_on_every_device_and_dtype(device: torch.device, float_dtype: torch.dtype) -> None:
+    """Transform, project, z-buffer and min-pool stay on the input's device and dtype with the same pixels."""
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, 3] = torch.tensor([0.5, -0.25, 2.0])
+    ego = torch.tensor([
+        [-0.48, 0.28, 8.0],     # camera (0.02, 0.03, 10): u = 31.5 + 0.2 -> col 32, v = 23.5 + 0.3 -> row 24
+        [0.515, -0.24, 3.0],    # camera (1.015, -0.49, 5): u = 31.5 + 20.3 -> 52, v = 23.5 - 9.8 -> 14
+        [1.53, -0.73, 8.0],     # camera (2.03, -0.98, 10): same pixel, farther: loses
+        [-0.5, 0.25, -5.0],     # behind
+    ], dtype=float_dtype, device=device)
+    pts = transform_points_torch(T.to(device), ego)
+    assert pts.device.type == device.type and pts.dtype == float_dtype
+    torch.testing.assert_close(pts[1], torch.tensor([1.015, -0.49, 5.0], dtype=float_dtype, device=device))
+    hits = project_to_pixels(pts, CAM)
+    assert hits.valid.tolist() == [True, True, True, False]
+    assert hits.index[:3].tolist() == [24 * 64 + 32, 14 * 64 + 52, 14 * 64 + 52]
+    d = splat_depth_torch(pts, CAM)
+    assert d.shape == (48, 64) and d.dtype == float_dtype and d.device.type == device.type
+    assert d[24, 32].item() == pytest.approx(10.0, rel=1e-6) and d[14, 52].item() == pytest.approx(5.0, rel=1e-6)
+    assert torch.count_nonzero(d).item() == 2
+    pooled = min_pool_nonzero_torch(d[None, None], 8)
+    assert pooled.shape == (1, 1, 6, 8) and pooled.dtype == float_dtype and pooled.device.type == device.type
+    assert pooled[0, 0, 3, 4].item() == pytest.approx(10.0, rel=1e-6)  # row 24 // 8, col 32 // 8
+    assert pooled[0, 0, 1, 6].item() == pytest.approx(5.0, rel=1e-6) and torch.count_nonzero(pooled).item() == 2

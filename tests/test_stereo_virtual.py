@@ -55,9 +55,9 @@ def test_halves_look_left_and_right_with_matching_resolution():
         K = half.intrinsics.K
         assert K[0, 0] == K[1, 1]
         assert math.isclose(K[0, 0], angular_resolution(front, half.sensor_to_ego[:3, 2]), rel_tol=1e-9)
-        assert math.isclose(half.intrinsics.fov_deg, 110.0, abs_tol=0.5)
+        assert math.isclose(half.intrinsics.hfov_deg, 110.0, abs_tol=0.5)
     small, _ = virtual_pinholes(front, hfov_deg=60, vfov_deg=40, yaw_deg=30, scale=0.5)
-    assert math.isclose(small.intrinsics.fov_deg, 60.0, abs_tol=1.0)
+    assert math.isclose(small.intrinsics.hfov_deg, 60.0, abs_tol=1.0)
     assert math.isclose(small.intrinsics.K[0, 0], 0.5 * angular_resolution(front, small.sensor_to_ego[:3, 2]))
 
 

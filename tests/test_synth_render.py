@@ -43,7 +43,7 @@ def test_preset_rings_sizes_and_yaws():
         assert math.degrees(math.atan2(axis[1], axis[0])) == pytest.approx(yaw if yaw != 180 else 180.0, abs=1e-9) \
             or abs(abs(math.degrees(math.atan2(axis[1], axis[0]))) - 180) < 1e-9
         assert 1.4 < cam.sensor_to_ego[2, 3] < 1.7
-    fovs = [c.intrinsics.fov_deg for c in cams]
+    fovs = [c.intrinsics.hfov_deg for c in cams]
     assert all(64 <= f <= 70 for i, f in enumerate(fovs) if i != 3)
     assert 85 <= fovs[3] <= 115
     half = preset_cameras("ddad", 0.5)

@@ -15,14 +15,18 @@ import os
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError
+
+if TYPE_CHECKING:  # types only: `sgde bench` loads the prior pipeline when this benchmark runs
+    from ..rig import Rig
+    from ..stereo.pipeline import PriorConfig
 
 COLUMNS = ("abs_rel", "sq_rel", "rmse", "a1", "n_prior", "coverage", "n_overlap")
 
 
-def _pose_source(rig: Any, path: str) -> Any:
+def _pose_source(rig: Rig, path: str) -> Rig:
     """The scene's rig with the extrinsics of the sgde-rig/1 file at `path` (every camera must be there)."""
     from ..rig import read_rig_json
 
@@ -33,7 +37,7 @@ def _pose_source(rig: Any, path: str) -> Any:
     return rig.with_extrinsics({c: other.camera(c).sensor_to_ego for c in rig.camera_names})
 
 
-def _truth(rig: Any) -> tuple[dict, dict, float]:
+def _truth(rig: Rig) -> tuple[dict, dict, float]:
     """LiDAR depth of every frame and camera, the masks, and the seconds it took."""
     t0 = time.perf_counter()
     gts = {}
@@ -45,7 +49,7 @@ def _truth(rig: Any) -> tuple[dict, dict, float]:
     return gts, masks, time.perf_counter() - t0
 
 
-def evaluate_source(rig: Any, rig_overlap: Any, images: dict, gts: dict, masks: dict, config: Any) -> dict:
+def evaluate_source(rig: Rig, rig_overlap: Rig, images: dict, gts: dict, masks: dict, config: PriorConfig) -> dict:
     """Build the priors of every frame with `rig`'s extrinsics and score them (overlap from `rig_overlap`)."""
     from ..stereo.evaluate import PriorEvaluator
     from ..stereo.pipeline import PriorBuilder
@@ -67,7 +71,7 @@ def evaluate_source(rig: Any, rig_overlap: Any, images: dict, gts: dict, masks: 
     return report
 
 
-def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: Any = None,
+def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: PriorConfig | None = None,
              max_frames: int | None = None) -> dict[str, Any]:
     """The benchmark's report: {"sources": {name: evaluation report}, "seconds": ..., "load_avg": ...}.
 

@@ -13,25 +13,27 @@ from zarr.core.sync import sync
 
 from ..errors import InputError
 
+Location = str | Path | Store  # a local folder, an fsspec URL (memory://, s3://, ...) or an open zarr store
 
-def is_url(location: Any) -> bool:
+
+def is_url(location: Location) -> bool:
     """True for fsspec URLs such as memory://..., s3://..., gs://..."""
     return isinstance(location, str) and "://" in location and not location.startswith("file://")
 
 
-def location_name(location: Any) -> str:
+def location_name(location: Location) -> str:
     """The cache location as shown to the user."""
     return str(location) if not isinstance(location, Store) else repr(location)
 
 
-def local_path(location: Any) -> Path | None:
+def local_path(location: Location) -> Path | None:
     """The folder of a local cache (None for URLs and zarr stores)."""
     if isinstance(location, Store) or is_url(location):
         return None
     return Path(str(location).removeprefix("file://"))
 
 
-def open_store(location: Any, read_only: bool, storage_options: Mapping[str, Any] | None = None) -> Store:
+def open_store(location: Location, read_only: bool, storage_options: Mapping[str, Any] | None = None) -> Store:
     """A zarr store for a local folder, an fsspec URL or an existing zarr Store; InputError for a location
     that cannot hold a cache (an unknown URL protocol, a file, a missing folder when reading)."""
     if isinstance(location, Store):
@@ -53,7 +55,7 @@ def open_store(location: Any, read_only: bool, storage_options: Mapping[str, Any
     return zarr.storage.LocalStore(path, read_only=read_only)
 
 
-def open_root(store: Store, location: Any, mode: str) -> zarr.Group:
+def open_root(store: Store, location: Location, mode: str) -> zarr.Group:
     """The cache's root group; InputError when the location is not a zarr v3 group."""
     try:
         root = zarr.open_group(store, mode=mode, zarr_format=3)
@@ -62,7 +64,7 @@ def open_root(store: Store, location: Any, mode: str) -> zarr.Group:
     return root
 
 
-def store_keys(location: Any, storage_options: Mapping[str, Any] | None = None) -> dict[str, int]:
+def store_keys(location: Location, storage_options: Mapping[str, Any] | None = None) -> dict[str, int]:
     """Every key of the store with its size in bytes."""
     store = open_store(location, read_only=True, storage_options=storage_options)
 
@@ -92,7 +94,7 @@ def get_bytes(store: Store, key: str) -> bytes | None:
     return None if buf is None else buf.to_bytes()
 
 
-def read_key(location: Any, key: str, storage_options: Mapping[str, Any] | None = None) -> bytes | None:
+def read_key(location: Location, key: str, storage_options: Mapping[str, Any] | None = None) -> bytes | None:
     """Raw bytes of one store key (None when absent)."""
     return get_bytes(open_store(location, read_only=True, storage_options=storage_options), key)
 

@@ -29,9 +29,10 @@ import numpy as np
 
 from ..errors import InputError
 from ..progress import progress
+from ..rig import Rig
 from .backends import location_name
 from .creation import prepare_scene, remove_partial_files
-from .fingerprints import config_document, fingerprint_parts
+from .fingerprints import ConfigLike, config_document, fingerprint_parts
 from .lock import writer_lock
 from .writer import SceneWriter
 
@@ -42,7 +43,7 @@ ENGINES = ("local", "ray")
 class PriorCompute:
     """The default compute: load a frame's images (and the rig's masks) and run PriorBuilder."""
 
-    def __init__(self, rig: Any, config: Any):
+    def __init__(self, rig: Rig, config: ConfigLike):
         self.rig = rig
         self.config = config
         self._builder: Any = None
@@ -117,7 +118,7 @@ def sanitize_scene_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).lstrip("._") or "scene"
 
 
-def default_scene_name(rig: Any) -> str:
+def default_scene_name(rig: Rig) -> str:
     """The rig's scene name: rig.json's 'scene' key, else its folder's name, else 'scene'."""
     name = rig.extra.get("scene") if isinstance(getattr(rig, "extra", None), Mapping) else None
     if not isinstance(name, str) or not name:
@@ -302,9 +303,9 @@ def _note_warning(
 
 
 def build_cache(
-    rig: Any,
+    rig: Rig,
     out: Any,
-    config: Any = None,
+    config: ConfigLike = None,
     workers: int = 1,
     engine: str = "local",
     *,
@@ -419,7 +420,7 @@ def available_memory() -> int | None:
 LEARNED_WORKER_BYTES = 2 * 1024**3
 
 
-def default_workers(config: Any = None) -> int:
+def default_workers(config: ConfigLike = None) -> int:
     """Worker processes by default: one per CPU; a learned matcher: as many as memory allows (2 GiB each),
     and one on a GPU (torch then uses the CPUs inside that worker)."""
     cpus = usable_cpus()

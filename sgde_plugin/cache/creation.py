@@ -25,7 +25,8 @@ from zarr.core.sync import sync
 
 from .. import __version__
 from ..errors import InputError
-from .backends import local_path, location_name, open_store
+from ..rig import Rig
+from .backends import Location, local_path, location_name, open_store
 from .fingerprints import CACHE_FORMAT, describe_config_change, rig_document
 from .layout import (
     ARRAYS,
@@ -49,7 +50,7 @@ def _compressors(itemsize: int) -> list[Any]:
     return [BloscCodec(cname="zstd", clevel=5, shuffle="shuffle", typesize=itemsize), Crc32cCodec()]
 
 
-def _refusal(location: Any, scene: str | None, cached: Mapping[str, Any], parts: Mapping[str, Any]) -> InputError:
+def _refusal(location: Location, scene: str | None, cached: Mapping[str, Any], parts: Mapping[str, Any]) -> InputError:
     """The one-line refusal for a fingerprint mismatch, naming what differs."""
     where = location_name(location)
     if cached.get("config_fingerprint") != parts["config"]:
@@ -77,9 +78,9 @@ class ScenePlan:
 
 
 def prepare_scene(
-    location: Any,
+    location: Location,
     scene: str,
-    rig: Any,
+    rig: Rig,
     parts: Mapping[str, Any],
     storage_options: Mapping[str, Any] | None = None,
     *,
@@ -114,7 +115,7 @@ def prepare_scene(
     return _reopen_scene(root, group, store, location, scene, rig, parts, repair)
 
 
-def _prepare_root(store: Store, location: Any, parts: Mapping[str, Any]) -> zarr.Group:
+def _prepare_root(store: Store, location: Location, parts: Mapping[str, Any]) -> zarr.Group:
     try:
         root = zarr.open_group(store, mode="r+", zarr_format=3)
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError):
@@ -144,12 +145,12 @@ def _prepare_root(store: Store, location: Any, parts: Mapping[str, Any]) -> zarr
     return root
 
 
-def _frame_lists(rig: Any) -> tuple[list[str], dict[str, int], dict[str, str]]:
+def _frame_lists(rig: Rig) -> tuple[list[str], dict[str, int], dict[str, str]]:
     ids = [fr.id for fr in rig.frames]
     return ids, {fr.id: int(fr.timestamp_us) for fr in rig.frames}, {fr.id: frame_source(fr) for fr in rig.frames}
 
 
-def _create_scene(root: zarr.Group, scene: str, rig: Any, parts: Mapping[str, Any]) -> ScenePlan:
+def _create_scene(root: zarr.Group, scene: str, rig: Rig, parts: Mapping[str, Any]) -> ScenePlan:
     cameras = camera_entries(rig)
     ids, stamps, sources = _frame_lists(rig)
     attrs = {
@@ -188,7 +189,7 @@ def _create_scene(root: zarr.Group, scene: str, rig: Any, parts: Mapping[str, An
     return ScenePlan(scene, list(ids), list(range(n)), 0)
 
 
-def _check_same_scene(location: Any, scene: str, attrs: Mapping[str, Any], rig: Any) -> None:
+def _check_same_scene(location: Location, scene: str, attrs: Mapping[str, Any], rig: Rig) -> None:
     """Refuse frames whose timestamp or source (rig entry, image sizes) differs from the cached ones."""
     ids, stamps, sources = _frame_lists(rig)
     known = list(attrs["frame_ids"])
@@ -208,7 +209,7 @@ def _check_same_scene(location: Any, scene: str, attrs: Mapping[str, Any], rig: 
             )
 
 
-def _extend(group: zarr.Group, arrays: Mapping[str, Any], attrs: Mapping[str, Any], rig: Any) -> list[str]:
+def _extend(group: zarr.Group, arrays: Mapping[str, Any], attrs: Mapping[str, Any], rig: Rig) -> list[str]:
     """Append the rig's frames that the scene lacks; returns the scene's whole frame list."""
     ids, stamps, sources = _frame_lists(rig)
     known = list(attrs["frame_ids"])
@@ -230,7 +231,7 @@ def _extend(group: zarr.Group, arrays: Mapping[str, Any], attrs: Mapping[str, An
 
 
 def _reopen_scene(
-    root: zarr.Group, group: zarr.Group, store: Store, location: Any, scene: str, rig: Any,
+    root: zarr.Group, group: zarr.Group, store: Store, location: Location, scene: str, rig: Rig,
     parts: Mapping[str, Any], repair: bool,
 ) -> ScenePlan:
     attrs = dict(group.attrs)
@@ -277,7 +278,7 @@ def _find_damaged(
     return {fi: why for fi, why in damaged.items() if fi in keep}
 
 
-def remove_partial_files(location: Any, scene: str) -> int:
+def remove_partial_files(location: Location, scene: str) -> int:
     """Delete temporary files left by writes that a kill interrupted (local folders only)."""
     import os
 

@@ -17,7 +17,8 @@ import torch
 from torch.utils.data import Dataset
 
 from ..errors import InputError
-from .resample import as_affine, resize_matrix, warp_depth, warp_image
+from ..rig import Rig
+from .resample import as_affine, resize_matrix, warp_depth_affine, warp_image
 from .store import PriorCache, check_size
 
 IdaSpec = np.ndarray | Callable[[str, str, tuple[int, int], tuple[int, int]], np.ndarray] | None
@@ -36,7 +37,7 @@ class PriorDataset(Dataset):
 
     def __init__(
         self,
-        rig: Any,
+        rig: Rig,
         cache: Any,
         size: tuple[int, int],
         *,
@@ -89,7 +90,7 @@ class PriorDataset(Dataset):
         image = self.rig.load_image(frame_id, camera)
         img = warp_image(image, m, self.size).astype(np.float32) / 255.0
         depth, _, conf = self.cache.get_prior(frame_id, camera)
-        prior, confidence = warp_depth(depth, m, self.size, conf)
+        prior, confidence = warp_depth_affine(depth, m, self.size, conf)
         out = {
             "image": torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))),
             "prior": torch.from_numpy(prior[None]),
@@ -101,7 +102,7 @@ class PriorDataset(Dataset):
         }
         if self.with_gt:
             gt = self.rig.load_depth(frame_id, camera)
-            gt_out = np.zeros(self.size, np.float32) if gt is None else warp_depth(gt, m, self.size)[0]
+            gt_out = np.zeros(self.size, np.float32) if gt is None else warp_depth_affine(gt, m, self.size)[0]
             out["gt"] = torch.from_numpy(gt_out[None])
         return out
 

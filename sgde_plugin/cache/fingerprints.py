@@ -12,10 +12,17 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, Union
 
 import numpy as np
 
+if TYPE_CHECKING:  # types only: the cache reader does not load the stereo pipeline (OpenCV)
+    from ..rig import Rig
+    from ..stereo.pipeline import PriorConfig
+
+
+# A PriorConfig, its `to_dict()` mapping, or None for the defaults.
+ConfigLike = Union["PriorConfig", Mapping[str, Any], None]  # noqa: UP007 - a forward reference
 CACHE_FORMAT = "sgde-prior-cache/1"
 DIGEST_CHARS = 20
 
@@ -40,7 +47,7 @@ def digest(obj: Any) -> str:
     return hashlib.sha256(canonical_json(obj).encode("utf-8")).hexdigest()[:DIGEST_CHARS]
 
 
-def config_dict(config: Any) -> dict[str, Any]:
+def config_dict(config: ConfigLike) -> dict[str, Any]:
     """A PriorConfig (anything with `to_dict()`) or a mapping, as a plain JSON-able dict."""
     if config is None:
         from ..stereo.pipeline import PriorConfig
@@ -60,7 +67,7 @@ def default_algo_version() -> str:
     return str(PRIOR_ALGO_VERSION)
 
 
-def rig_document(rig: Any) -> dict[str, Any]:
+def rig_document(rig: Rig) -> dict[str, Any]:
     """Everything about a rig that changes its priors: cameras, pairs (order-free), mask contents."""
     masks = {}
     for name, path in sorted(dict(getattr(rig, "masks", {}) or {}).items()):
@@ -69,20 +76,20 @@ def rig_document(rig: Any) -> dict[str, Any]:
     return {"cameras": [c.to_dict() for c in rig.cameras], "pairs": pairs, "masks": masks}
 
 
-def config_document(config: Any, algo_version: str | None = None) -> dict[str, Any]:
+def config_document(config: ConfigLike, algo_version: str | None = None) -> dict[str, Any]:
     """Everything about the prior computation that changes its output."""
     version = default_algo_version() if algo_version is None else str(algo_version)
     return {"config": config_dict(config), "algo_version": version, "cache_format": CACHE_FORMAT}
 
 
-def fingerprint_parts(rig: Any, config: Any = None, algo_version: str | None = None) -> dict[str, str]:
+def fingerprint_parts(rig: Rig, config: ConfigLike = None, algo_version: str | None = None) -> dict[str, str]:
     """The three digests {'rig', 'config', 'fingerprint'} of a rig built with a configuration."""
     rig_fp = digest(rig_document(rig))
     cfg_fp = digest(config_document(config, algo_version))
     return {"rig": rig_fp, "config": cfg_fp, "fingerprint": digest({"rig": rig_fp, "config": cfg_fp})}
 
 
-def fingerprint(rig: Any, config: Any = None, algo_version: str | None = None) -> str:
+def fingerprint(rig: Rig, config: ConfigLike = None, algo_version: str | None = None) -> str:
     """Fingerprint of the priors of `rig` computed with `config` (calibration + settings + versions)."""
     return fingerprint_parts(rig, config, algo_version)["fingerprint"]
 

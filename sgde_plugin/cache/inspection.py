@@ -7,13 +7,13 @@ from typing import Any
 
 import numpy as np
 
-from .backends import location_name, open_root, open_store, store_keys
+from .backends import Location, location_name, open_root, open_store, store_keys
 from .fingerprints import CACHE_FORMAT, digest
 from .layout import frame_problems, missing_shards, open_arrays, read_counts, scene_groups, scene_problems
 from .store import list_scenes, scene_arrays
 
 
-def cache_info(location: Any, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def cache_info(location: Location, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Scenes, frames (done / total), cameras with sizes and prior coverage, bytes, fingerprints."""
     store = open_store(location, read_only=True, storage_options=storage_options)
     root = open_root(store, location, "r")
@@ -93,7 +93,7 @@ def _root_problems(root: Any, names: list[str], broken: Mapping[str, str]) -> li
     return out
 
 
-def verify_cache(location: Any, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def verify_cache(location: Location, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Read every chunk of every array of every scene and check the scene attributes against the arrays;
     problems are named by scene, frame and camera. A frame not built yet is a problem (incomplete cache)."""
     store = open_store(location, read_only=True, storage_options=storage_options)

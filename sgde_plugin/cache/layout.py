@@ -13,6 +13,7 @@ import numpy as np
 from zarr.abc.store import Store
 
 from ..errors import InputError
+from ..rig import Frame, Rig
 from .backends import list_prefix
 from .fingerprints import digest
 
@@ -35,7 +36,7 @@ class CameraEntry:
         return {"name": self.name, "width": self.width, "height": self.height, "depth": self.depth}
 
 
-def camera_entries(rig: Any) -> list[CameraEntry]:
+def camera_entries(rig: Rig) -> list[CameraEntry]:
     """Cache camera entries of a rig, in rig order."""
     out = []
     for cam in rig.cameras:
@@ -70,7 +71,7 @@ def file_signature(path: Any, edge: int = 16384) -> str:
     return f"{size}:{hashlib.sha256(head + tail).hexdigest()[:16]}"
 
 
-def frame_source(frame: Any) -> str:
+def frame_source(frame: Frame) -> str:
     """Digest of what a frame's prior is computed from besides the calibration: its rig.json entry
     (timestamp, ego poses) and a signature of each image file, so priors of another scene are noticed.
     Stored per frame in the scene attribute `frame_inputs`."""

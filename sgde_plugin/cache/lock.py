@@ -14,14 +14,13 @@ import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
 
 from ..errors import InputError
-from .backends import local_path, location_name
+from .backends import Location, local_path, location_name
 
 
 @contextmanager
-def writer_lock(location: Any, wait_s: float = 0.0) -> Iterator[bool]:
+def writer_lock(location: Location, wait_s: float = 0.0) -> Iterator[bool]:
     """Hold the cache's writer lock for the block (yields True), or yield False where there is no lock
     (object stores). Waits up to `wait_s` seconds for another writer, then refuses with InputError."""
     path = local_path(location)

@@ -107,7 +107,7 @@ def _nearest_indices(affine: np.ndarray, src_hw: tuple[int, int], out_hw: tuple[
     return np.broadcast_to(rows, out_hw), np.broadcast_to(cols, out_hw), np.broadcast_to(inside, out_hw)
 
 
-def warp_depth(
+def warp_depth_affine(
     depth: np.ndarray, matrix: np.ndarray, out_hw: tuple[int, int], *extra: np.ndarray
 ) -> tuple[np.ndarray, ...]:
     """Warp a depth map (0 = none) by a pixel affine to out_hw without inventing depths: min-pool of
@@ -151,8 +151,8 @@ def warp_image(image: np.ndarray, matrix: np.ndarray, out_hw: tuple[int, int]) -
 
 
 def resize_depth(depth: np.ndarray, out_hw: tuple[int, int], *extra: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Resize a depth map (0 = none) to out_hw without inventing depths (see `warp_depth`)."""
-    return warp_depth(depth, resize_matrix(depth.shape[:2], out_hw), out_hw, *extra)
+    """Resize a depth map (0 = none) to out_hw without inventing depths (see `warp_depth_affine`)."""
+    return warp_depth_affine(depth, resize_matrix(depth.shape[:2], out_hw), out_hw, *extra)
 
 
 __all__ = [
@@ -161,6 +161,6 @@ __all__ = [
     "min_pool_depth",
     "resize_depth",
     "resize_matrix",
-    "warp_depth",
+    "warp_depth_affine",
     "warp_image",
 ]

@@ -34,7 +34,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..rig import Rig
 from .backends import (  # noqa: F401 - re-exported
+    Location,
     get_bytes,
     is_url,
     list_prefix,
@@ -46,7 +48,7 @@ from .backends import (  # noqa: F401 - re-exported
     store_keys,
 )
 from .creation import ScenePlan, prepare_scene, remove_partial_files  # noqa: F401 - re-exported
-from .fingerprints import CACHE_FORMAT, config_document, describe_config_change, digest, rig_document
+from .fingerprints import CACHE_FORMAT, ConfigLike, config_document, describe_config_change, digest, rig_document
 from .layout import (  # noqa: F401 - re-exported
     ARRAYS,
     UNITS,
@@ -78,8 +80,8 @@ class PriorCache:
         scene: str | None = None,
         *,
         expect: str | None = None,
-        rig: Any = None,
-        config: Any = None,
+        rig: Rig | None = None,
+        config: ConfigLike = None,
         algo_version: str | None = None,
         storage_options: Mapping[str, Any] | None = None,
     ):
@@ -205,21 +207,11 @@ class PriorCache:
                 seen.setdefault(c.name, None)
         return list(seen)
 
-    def camera_size(self, camera: str, frame_id: str | None = None) -> tuple[int, int]:
-        """Native (height, width) of a camera's prior."""
-        for name, s in self._open()["scenes"].items():
-            if frame_id is not None and self._locate(frame_id)[0] != name:
-                continue
-            if camera in s["camera_index"]:
-                entry = s["cameras"][s["camera_index"][camera]]
-                return entry.height, entry.width
-        raise KeyError(camera)
-
     def config(self) -> dict[str, Any]:
         """The configuration document the cache was built with (config, algo_version, format)."""
         return dict(self._open()["root_attrs"].get("config", {}))
 
-    def check(self, rig: Any = None, config: Any = None, algo_version: str | None = None) -> None:
+    def check(self, rig: Rig | None = None, config: ConfigLike = None, algo_version: str | None = None) -> None:
         """Refuse (InputError) if the cache was built for another rig calibration or configuration."""
         state = self._open()
         if config is not None:
@@ -248,7 +240,7 @@ class PriorCache:
             raise KeyError(f"frame {frame_id!r} is in several scenes; open the cache with scene=...")
         return state["frames"][frame_id]
 
-    def check_frames(self, rig: Any) -> None:
+    def check_frames(self, rig: Rig) -> None:
         """Refuse (InputError) when a cached frame of the rig was built from other images or poses (the
         cache of another scene whose frames share ids) or another timestamp."""
         state = self._open()
@@ -362,14 +354,14 @@ def check_size(size: Any) -> tuple[int, int] | None:
     return h, w
 
 
-def scene_arrays(location: Any, scene: str, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def scene_arrays(location: Location, scene: str, storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The raw zarr group, attributes and arrays of one scene (for info, verify and tests)."""
     store = open_store(location, read_only=True, storage_options=storage_options)
     group = open_root(store, location, "r")[scene]
     return {"group": group, "attrs": dict(group.attrs), **{name: group[name] for name in ARRAYS}}
 
 
-def list_scenes(location: Any, storage_options: Mapping[str, Any] | None = None) -> list[str]:
+def list_scenes(location: Location, storage_options: Mapping[str, Any] | None = None) -> list[str]:
     """Scene names of a cache (including scenes whose creation was interrupted or whose metadata is damaged)."""
     store = open_store(location, read_only=True, storage_options=storage_options)
     groups, broken = scene_groups(store, open_root(store, location, "r"))

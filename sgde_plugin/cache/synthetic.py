@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import time
 import zlib
-from typing import Any
 
 import numpy as np
+
+from ..rig import Rig
 
 
 def synthetic_prior(
@@ -46,7 +47,7 @@ def synthetic_prior(
 class SyntheticPriorCompute:
     """Picklable `compute(frame_id) -> {camera: (depth, confidence)}` with synthetic priors."""
 
-    def __init__(self, rig: Any, seed: int = 0, delay_s: float = 0.0, cameras: list[str] | None = None):
+    def __init__(self, rig: Rig, seed: int = 0, delay_s: float = 0.0, cameras: list[str] | None = None):
         self.sizes = {c.name: (int(c.height), int(c.width)) for c in rig.cameras}
         self.cameras = list(cameras) if cameras is not None else list(self.sizes)
         self.seed = int(seed)

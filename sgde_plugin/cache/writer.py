@@ -12,7 +12,7 @@ import zarr
 from zarr.core.sync import sync
 
 from ..errors import InputError
-from .backends import get_bytes, location_name, open_store
+from .backends import Location, get_bytes, location_name, open_store
 from .layout import CameraEntry, shard_key
 
 FLOAT16_MAX = 65504.0
@@ -48,7 +48,7 @@ class SceneWriter:
     and again before its done marker."""
 
     def __init__(
-        self, location: Any, scene: str, storage_options: Mapping[str, Any] | None = None,
+        self, location: Location, scene: str, storage_options: Mapping[str, Any] | None = None,
         expect: str | None = None,
     ):
         self.location = location

@@ -148,8 +148,26 @@ def triangulate_midpoint(
 
 
 def view_poses(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray) -> np.ndarray:
-    """Camera-to-world poses (T, M, 4, 4) of every camera in every frame."""
+    """Camera-to-world poses (T, M, 4, 4) of every camera in every frame; `ego_to_world` (T, 4, 4), or
+    (T, M, 4, 4) with each camera's own ego pose at its capture."""
+    if np.ndim(ego_to_world) == 4:
+        return np.einsum("tmij,mjk->tmik", ego_to_world, sensor_to_ego)
     return np.einsum("tij,mjk->tmik", ego_to_world, sensor_to_ego)
+
+
+def capture_offsets(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, reference: int) -> np.ndarray:
+    """Per frame and camera (T, M, 4, 4): the reference camera at camera m's capture, in the reference camera's
+    frame at its own capture (identity for a synchronous rig), from the ego poses and its initial mount.
+
+    With per-camera capture the pose of camera m in frame t is X^1_t E_tm X^m_rel: the ego motion between
+    two captures is known, so the cameras keep one relative pose each (the paper's parametrisation).
+    """
+    ego = np.asarray(ego_to_world, dtype=np.float64)
+    M = sensor_to_ego.shape[0]
+    if ego.ndim == 3:
+        return np.broadcast_to(np.eye(4), (ego.shape[0], M, 4, 4)).copy()
+    W = np.einsum("tmij,jk->tmik", ego, sensor_to_ego[reference])  # reference camera at each capture
+    return np.einsum("tij,tmjk->tmik", invert_transform(W[:, reference]), W)
 
 
 def initial_points(
@@ -256,9 +274,17 @@ class _Problem:
     is fixed), 6 per non-reference camera, 3 for G; the reference camera maps to a discarded slot.
     """
 
-    def __init__(self, sensor_to_ego, ego_to_world, obs, focal, reference, config: AdjustConfig):
+    def __init__(self, sensor_to_ego, ego_to_world, obs, focal, reference, config: AdjustConfig,
+                 capture_mount: np.ndarray | None = None):
         self.M, self.T = sensor_to_ego.shape[0], ego_to_world.shape[0]
         self.ref, self.cfg, self.obs = reference, config, obs
+        mounts = sensor_to_ego.copy()
+        if capture_mount is not None:
+            mounts[reference] = capture_mount
+        cap = capture_offsets(mounts, ego_to_world, reference)[obs.frame, obs.camera]  # (N, 4, 4)
+        self.cap_RT, self.cap_t = np.swapaxes(cap[:, :3, :3], 1, 2), cap[:, :3, 3]
+        if ego_to_world.ndim == 4:
+            ego_to_world = ego_to_world[:, reference]
         self.loss = LOSSES[config.loss]
         self.sigma = np.ones(len(obs)) if obs.sigma_px is None else np.asarray(obs.sigma_px, dtype=np.float64)
         # residuals are in units of each observation's sigma
@@ -316,8 +342,8 @@ class _Problem:
         Rm, pm = st.R_m[o.camera], st.p_m[o.camera]
         rho, m, a = st.rho[o.point], st.m[o.point], st.anchor[o.point]
         h = rho[:, None] * (a - ct) + m
-        RtT = np.swapaxes(Rt, 1, 2)
-        v = (RtT @ h[:, :, None])[:, :, 0] - rho[:, None] * pm
+        RtT = self.cap_RT @ np.swapaxes(Rt, 1, 2)  # with the capture offset E: E_R^T R_t^T
+        v = (RtT @ h[:, :, None])[:, :, 0] - rho[:, None] * ((self.cap_RT @ self.cap_t[:, :, None])[:, :, 0] + pm)
         RmT = np.swapaxes(Rm, 1, 2)
         q = (RmT @ v[:, :, None])[:, :, 0]
         nq = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
@@ -340,7 +366,7 @@ class _Problem:
         J_pose[self.is_ref, :, 6:] = 0.0
         e1, e2 = tangent_basis(st.m)
         B = np.stack([e1, e2], axis=2)[o.point]  # (N, 3, 2) tangent basis of m
-        d_rho = (RtT @ (a - ct)[:, :, None])[:, :, 0] - pm
+        d_rho = (RtT @ (a - ct)[:, :, None])[:, :, 0] - (self.cap_RT @ self.cap_t[:, :, None])[:, :, 0] - pm
         J_pt = np.concatenate([A_RmT_RtT @ B, (A_RmT @ d_rho[:, :, None])], axis=2)  # (N, 2, 3)
         return r, J_pose, J_pt
 
@@ -474,7 +500,8 @@ def adjust(
     """Loop-constrained bundle adjustment over one window; see the module docstring.
 
     sensor_to_ego: (M, 4, 4) initial extrinsics (the priors refer to them); ego_to_world: (T, 4, 4) ego
-    poses of the window; obs: observations (camera, frame, point, unit ray, sigma); focal: (M,) pixels
+    poses of the window, or (T, M, 4, 4) each camera's own ego pose at its capture (see capture_offsets);
+    obs: observations (camera, frame, point, unit ray, sigma); focal: (M,) pixels
     per radian; reference: index of the camera that carries the gauge. `start` (a previous result of
     the same problem) with `start_points` (which of its points `obs` numbers 0, 1, ...) warm-starts.
     The iteration count includes rejected (re-damped) steps and is at most `config.max_iterations`.
@@ -482,17 +509,9 @@ def adjust(
     cfg = config or AdjustConfig()
     sensor_to_ego = np.asarray(sensor_to_ego, dtype=np.float64)
     ego_to_world = np.asarray(ego_to_world, dtype=np.float64)
-    n_points = int(obs.point.max()) + 1 if len(obs) else 0
-    prob = _Problem(sensor_to_ego, ego_to_world, obs, focal, reference, cfg)
-    if start is not None and start.state is not None:
-        st = start.state.copy()
-        if start_points is not None:
-            st.subset(start_points)
-    else:
-        st = prob.initial_state(n_points)
-        ego_local = np.einsum("tij,jk->tik", make_transform(st.R_t, st.c_t), invert_transform(sensor_to_ego[reference]))
-        points, anchors, _ = initial_points(sensor_to_ego, ego_local, obs, n_points, cfg.consensus_deg)
-        st.set_points(points, anchors)
+    if ego_to_world.ndim == 4 and (start is None or start.state is None) and cfg.max_iterations > 1:
+        return _adjust_captured(sensor_to_ego, ego_to_world, obs, focal, reference, cfg)
+    prob, st = _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points)
     r0 = prob.obs_terms(st, jacobians=False) * prob.sigma[:, None]
     initial_rms = float(np.sqrt(np.mean(np.sum(r0 * r0, axis=1)))) if len(obs) else 0.0
     cost = prob.cost(st)
@@ -530,6 +549,44 @@ def adjust(
         final_rms_px=final_rms,
         state=st,
     )
+
+
+def _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points):
+    """The problem and its starting state: a previous result's (warm start), else the initial poses with
+    points triangulated from them. With per-camera capture, a warm start's G gives the reference mount's
+    orientation for the capture offsets."""
+    warm = start is not None and start.state is not None
+    mount = None
+    if ego_to_world.ndim == 4 and warm:
+        mount = sensor_to_ego[reference].copy()
+        mount[:3, :3] = ego_to_world[0, reference, :3, :3].T @ start.state.G.T  # ego-world -> camera at frame 0
+    prob = _Problem(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, capture_mount=mount)
+    if warm:
+        st = start.state.copy()
+        if start_points is not None:
+            st.subset(start_points)
+        return prob, st
+    n_points = int(obs.point.max()) + 1 if len(obs) else 0
+    st = prob.initial_state(n_points)
+    cap = capture_offsets(sensor_to_ego, ego_to_world, reference)
+    ego_local = np.einsum("tij,tmjk,kl->tmil", make_transform(st.R_t, st.c_t), cap,
+                          invert_transform(sensor_to_ego[reference]))
+    points, anchors, _ = initial_points(sensor_to_ego, ego_local, obs, n_points, cfg.consensus_deg)
+    st.set_points(points, anchors)
+    return prob, st
+
+
+def _adjust_captured(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, obs: Observations, focal: np.ndarray,
+                     reference: int, cfg: AdjustConfig) -> AdjustResult:
+    """Per-camera capture: the ego motion between captures is turned into the reference camera's frame with its
+    mount; a first solve estimates the mount's orientation (through G), a second one uses it."""
+    first = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
+                   replace(cfg, max_iterations=cfg.max_iterations // 2))
+    again = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
+                   replace(cfg, max_iterations=cfg.max_iterations - first.iterations), start=first)
+    again.iterations += first.iterations
+    again.initial_rms_px = first.initial_rms_px
+    return again
 
 
 def select_observations(obs: Observations, keep_obs: np.ndarray) -> tuple[Observations, np.ndarray, np.ndarray]:

@@ -42,6 +42,7 @@ class MatchConfig:
     sigma_floor_px: float = 0.1
     loftr_sigma_px: float = 0.5
     fisheye_views: bool = True
+    pinhole_views: bool = True
     cross_time: bool = True
     seed: int = 0
 
@@ -257,9 +258,7 @@ def detect_features(
     for name in progress(involved, desc="calibrate: features", enabled=show_progress):
         cam = cams[name]
         neighbours = [o for (x, o) in grids if x == name]
-        views = {}
-        if cfg.fisheye_views and not isinstance(cam.intrinsics, Pinhole):
-            views = {o: v for o in neighbours if (v := overlap_view(cam, grids[(name, o)])) is not None}
+        views = _overlap_views(cams, name, neighbours, grids, cfg)
         static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
         raw = [o for o in neighbours if o not in views]
         det = np.zeros((cam.height, cam.width), np.uint8)
@@ -277,6 +276,23 @@ def detect_features(
                 feats[(t, name, o)] = _view_features(cam, view, picture, static, slot, cfg)
     timings.add("features", t0)
     return feats
+
+
+def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str],
+                   grids: dict[tuple[str, str], OverlapGrid], cfg: MatchConfig) -> dict[str, VirtualView]:
+    """Per neighbour, the virtual pinhole view of camera `name` aimed at their overlap (fisheyes: at the
+    fisheye's own resolution; pinholes: at the pair's common one, cropped), where the settings ask for one."""
+    cam = cams[name]
+    fisheye = not isinstance(cam.intrinsics, Pinhole)
+    if (fisheye and not cfg.fisheye_views) or (not fisheye and not cfg.pinhole_views):
+        return {}
+    views = {}
+    for o in neighbours:
+        view = overlap_view(cam, grids[(name, o)]) if fisheye else overlap_view(cam, grids[(name, o)], other=cams[o],
+                                                                                 crop=True)
+        if view is not None:
+            views[o] = view
+    return views
 
 
 def _sift_tentative(feats: dict, grids: dict, a: str, b: str, t: int, t2: int, cfg: MatchConfig) -> Tentative:

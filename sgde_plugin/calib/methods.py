@@ -244,6 +244,7 @@ def _chain(
     ego_to_world: np.ndarray, reference: str, config: AdjustConfig, same_time: bool,
 ) -> MethodResult:
     cams = {c.name: c for c in cameras}
+    names = list(cams)
     by_pair = {frozenset((m.cam_a, m.cam_b)): m for m in matches}
     # chain along observed pairs first; a camera they do not reach keeps its input pose relative to its parent
     observed = [p for p in pairs if len(by_pair[frozenset(p)]) >= MIN_PAIR_MATCHES]
@@ -265,7 +266,8 @@ def _chain(
             continue
         if same_time:
             cc = cc.with_pose(_essential_init(cp, cc, pm))
-        ext, res, rms, used = _adjust_cameras([cp, cc], [pm], ego_to_world, p, config)
+        ego = ego_to_world if ego_to_world.ndim == 3 else ego_to_world[:, [names.index(p), names.index(c)]]
+        ext, res, rms, used = _adjust_cameras([cp, cc], [pm], ego, p, config)
         Q = np.linalg.inv(cp.sensor_to_ego) @ ext[c]  # child in the parent's frame
         out[c] = out[p] @ Q
         result.used_pairs.append(key)
@@ -311,7 +313,8 @@ def run_method(
     method: str, cameras: Sequence[Camera], pairs: Sequence[tuple[str, str]], matches: Sequence[PairMatches],
     ego_to_world: np.ndarray, reference: str, config: AdjustConfig | None = None,
 ) -> MethodResult:
-    """Run one of METHODS on one window's correspondences."""
+    """Run one of METHODS on one window's correspondences; `ego_to_world` (T, 4, 4), or (T, M, 4, 4) with
+    each camera's own ego pose at its capture (cameras in the order of `cameras`)."""
     cfg = config or AdjustConfig()
     if method == "none":
         return MethodResult({c.name: c.sensor_to_ego.copy() for c in cameras}, message="input extrinsics kept")

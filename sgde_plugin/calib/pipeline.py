@@ -219,13 +219,10 @@ class WindowResult:
 
 
 def window_ego_poses(rig: Rig, frames: Sequence[Frame], cameras: Sequence[str]) -> np.ndarray:
-    """Ego poses of a window: (T, 4, 4) for a synchronous rig, (T, M, 4, 4) when cameras have their own
-    capture poses (in the order of `cameras`)."""
-    capture = getattr(rig, "capture_ego_to_world", None)
-    if capture is None:
-        return np.stack([f.ego_to_world for f in frames])
-    per = np.stack([[np.asarray(capture(f.id, c), dtype=np.float64) for c in cameras] for f in frames])
-    if np.allclose(per, per[:, :1]):
+    """Ego poses of a window: (T, 4, 4) when every camera was taken at its frame's pose, else (T, M, 4, 4),
+    each camera's own ego pose at its capture (in the order of `cameras`)."""
+    per = np.stack([[np.asarray(f.capture_ego_to_world(c), dtype=np.float64) for c in cameras] for f in frames])
+    if np.array_equal(per, np.broadcast_to(per[:, :1], per.shape)):
         return per[:, 0]
     return per
 

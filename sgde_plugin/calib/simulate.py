@@ -40,6 +40,11 @@ def perturb_extrinsics(
     return out
 
 
+def _ego(ego_to_world: np.ndarray, t: int, m: int) -> np.ndarray:
+    """Ego pose of frame t at camera m's capture ((T, 4, 4) synchronous, or (T, M, 4, 4))."""
+    return ego_to_world[t] if ego_to_world.ndim == 3 else ego_to_world[t, m]
+
+
 def simulate_observations(
     cameras: list[Camera],
     pairs: list[tuple[int, int]],
@@ -69,13 +74,13 @@ def simulate_observations(
             uv = rng.uniform([0, 0], [ca.width - 1, ca.height - 1], size=(n_try, 2))
             depth = rng.uniform(*depth_range_m, size=n_try)
             pa, ok = ca.intrinsics.points_from_depth(uv, depth)
-            A = ego_to_world[t] @ ca.sensor_to_ego
+            A = _ego(ego_to_world, t, a) @ ca.sensor_to_ego
             world = pa @ A[:3, :3].T + A[:3, 3]
             seen = {}
             for m in (a, b):
                 cm = cameras[m]
                 for t2 in range(T):
-                    V = ego_to_world[t2] @ cm.sensor_to_ego
+                    V = _ego(ego_to_world, t2, m) @ cm.sensor_to_ego
                     uvv, okv = cm.intrinsics.project((world - V[:3, 3]) @ V[:3, :3])
                     seen[(m, t2)] = (uvv, okv & ok)
             in_b = np.any([seen[(b, t2)][1] for t2 in range(T)], axis=0)

@@ -42,9 +42,16 @@ class VirtualView:
 
 
 def overlap_view(
-    cam: Camera, grid: OverlapGrid, hfov_deg: float = 110.0, vfov_deg: float = 100.0
+    cam: Camera, grid: OverlapGrid, hfov_deg: float = 110.0, vfov_deg: float = 100.0,
+    other: Camera | None = None, crop: bool = False, pad_deg: float = 10.0,
 ) -> VirtualView | None:
-    """A virtual pinhole of `cam` looking at the centre of its same-frame overlap in `grid`, or None."""
+    """A virtual pinhole of `cam` looking at the centre of its same-frame overlap in `grid`, or None.
+
+    Its focal length is the camera's own resolution (pixels per radian) there, or, given the `other` camera
+    of the pair, the smaller of the two: both views then see the overlap at one scale (a 48-degree and an
+    85-degree camera see it at about 2:1). With `crop` the view covers only the overlap's bounding box (at
+    most hfov x vfov), grown by `pad_deg` on each side for matches across frames.
+    """
     T = grid.mask.shape[0]
     same = np.any(grid.mask[np.arange(T), np.arange(T)], axis=0)
     rows, cols = np.nonzero(same)
@@ -63,12 +70,24 @@ def overlap_view(
     R = np.stack([x, np.cross(z, x), z], axis=1)  # virtual -> source camera frame (y stays "down")
     pose = cam.sensor_to_ego.copy()
     pose[:3, :3] = cam.sensor_to_ego[:3, :3] @ R
-    f = angular_resolution(cam, pose[:3, 2])
-    if f is None:
+    own = angular_resolution(cam, pose[:3, 2])
+    if own is None:
         return None
+    f = own
+    if other is not None and (res := angular_resolution(other, pose[:3, 2])) is not None:
+        f = min(own, res)
     w = max(16, int(round(2 * f * np.tan(np.radians(hfov_deg) / 2))))
     h = max(16, int(round(2 * f * np.tan(np.radians(vfov_deg) / 2))))
-    K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    x0, y0, x1, y1 = -(w - 1) / 2, -(h - 1) / 2, (w - 1) / 2, (h - 1) / 2
+    if crop:  # the same-frame overlap's bounding box, grown by `pad_deg` for matches across frames
+        local = rays[ok] @ R  # in the view's frame
+        front = local[:, 2] > 0.05
+        p = local[front, :2] / local[front, 2:3] * f
+        pad = f * np.tan(np.radians(pad_deg))
+        x0, y0 = max(x0, np.floor(p[:, 0].min() - pad)), max(y0, np.floor(p[:, 1].min() - pad))
+        x1, y1 = min(x1, p[:, 0].max() + pad), min(y1, p[:, 1].max() + pad)
+        w, h = max(16, int(np.ceil(x1 - x0)) + 1), max(16, int(np.ceil(y1 - y0)) + 1)
+    K = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     virtual = Camera(f"{cam.name}.overlap", Pinhole(w, h, K, None), pose)
     map_x, map_y, valid = camera_maps(cam, virtual, default_rim_px(cam))
     return VirtualView(virtual, map_x, map_y, valid, R)

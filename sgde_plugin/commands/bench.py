@@ -36,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run (default: all): {names}")
     parser.add_argument("--json", dest="json_out", help="write all results to this JSON file")
     parser.add_argument("--fast", action="store_true", help="smaller sizes, and skip the slow benchmarks unless named")
+    parser.add_argument("--peer", choices=("colmap",), default=None,
+                        help="calibrate: GLC against COLMAP's rig bundle adjustment on the presets and random rigs "
+                             "(needs the extra `peer`: pycolmap)")
     parser.add_argument("--supervision", choices=("lidar", "self"), default="lidar",
                         help="train-effect: LiDAR-like supervision (default) or self-supervised view synthesis")
     parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
@@ -98,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             module = importlib.import_module(f"sgde_plugin.benchmarks.{BENCHMARKS[n]}")
             options = {"supervision": args.supervision} if n == "train-effect" else {}
+            if n == "calibrate" and getattr(args, "peer", None):
+                options = {"peer": args.peer}
             result = module.run(fast=args.fast, **options)
         except ModuleNotFoundError as exc:
             result = {"error": f"not available: {exc}"}

@@ -45,6 +45,8 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
     ("confidence_disparity_px", "float", "confidence x d / (d + this): small disparities are less sure (2)"),
     ("edge_jump_px", "float", "confidence x jump / local disparity range beyond this, 0 = off (0)"),
+    ("min_confidence", "float", "drop fused values less confident than this, 0-1 (0; real-camera presets 0.4)"),
+    ("antialias", "bool", "low-pass each image before resampling it at --scale (no)"),
     ("normalize", "str", "photometric normalisation of each rectified pair: none, gain or local (none)"),
     ("normalize_sigma", "float", "local normalisation window (Gaussian sigma), rectified pixels (8)"),
 ]

@@ -32,16 +32,18 @@ from __future__ import annotations
 
 import calendar
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera, intrinsics_from_dict
+from ..cameras import Camera
 from ..errors import InputError
 from ..geometry import invert_transform, make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
+from ..rigfile import intrinsics_from_dict
 from .jsonio import get, read_json
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
@@ -147,41 +149,66 @@ def _scene_file(folder: Path) -> Path:
     return max(dated)[2]
 
 
-def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
-    """One DDAD scene (a folder with scene_<sha1>.json, or that file) as a Rig."""
-    path = Path(path)
-    scene_path = path if path.is_file() else _scene_file(path)
-    folder = scene_path.parent
-    doc = read_json(scene_path)
-    if not isinstance(doc, dict):
-        raise InputError(scene_path, None, "top level is not a JSON object")
-    samples = _field(doc, "samples", scene_path, "scene", list)
-    data = _field(doc, "data", scene_path, "scene", list)
-    if not samples:
-        raise InputError(scene_path, "samples", "empty")
+Keyed = tuple[str, dict]  # (datum key, datum) of one sensor in one sample
 
+
+@dataclass(frozen=True)
+class _Samples:
+    """Stage 1 of `load_ddad_scene`: per sample, the ring cameras' and LiDAR's datums; the cameras present."""
+
+    frames: list[dict[str, Keyed]]
+    present: tuple[str, ...]
+    calibration_key: str
+
+
+@dataclass(frozen=True)
+class _Calibration:
+    """Stage 2 of `load_ddad_scene`: the present cameras (intrinsics, mounts) and the LiDAR mount."""
+
+    cameras: tuple[Camera, ...]
+    lidar_mount: np.ndarray | None
+
+
+def _datums_by_key(data: list, scene_path: Path) -> dict[str, dict]:
+    """The scene's `data` list keyed by datum key."""
     datums: dict[str, dict] = {}
     for i, d in enumerate(data):
         if not isinstance(d, dict):
             raise InputError(scene_path, f"data[{i}]", "not an object")
         datums[_field(d, "key", scene_path, f"data[{i}]", str)] = d
+    return datums
 
+
+def _sample_sensors(s: dict, datums: dict[str, dict], scene_path: Path, where: str) -> dict[str, Keyed]:
+    """The ring cameras' and LiDAR's datums of one sample, by upper-case sensor name."""
+    by_name: dict[str, Keyed] = {}
+    for key in _field(s, "datum_keys", scene_path, where, list):
+        d = datums.get(key)
+        if d is None:
+            raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not in data")
+        name = _field(_field(d, "id", scene_path, f"data[key={key}]", dict), "name", scene_path,
+                      f"data[key={key}].id", str).upper()
+        if name in RING or name == LIDAR:
+            by_name[name] = (key, d)
+    return by_name
+
+
+def _read_samples(doc: dict, scene_path: Path) -> _Samples:
+    """Stage 1: every sample's sensors; the first sample fixes the cameras, which every sample must hold."""
+    samples = _field(doc, "samples", scene_path, "scene", list)
+    data = _field(doc, "data", scene_path, "scene", list)
+    if not samples:
+        raise InputError(scene_path, "samples", "empty")
+    datums = _datums_by_key(data, scene_path)
     calib_keys = set()
-    frames_datums: list[dict[str, tuple[str, dict]]] = []
+    frames_datums: list[dict[str, Keyed]] = []
+    present: tuple[str, ...] = ()
     for i, s in enumerate(samples):
         where = f"samples[{i}]"
         if not isinstance(s, dict):
             raise InputError(scene_path, where, "not an object")
         calib_keys.add(_field(s, "calibration_key", scene_path, where, str))
-        by_name: dict[str, tuple[str, dict]] = {}
-        for key in _field(s, "datum_keys", scene_path, where, list):
-            d = datums.get(key)
-            if d is None:
-                raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not in data")
-            name = _field(_field(d, "id", scene_path, f"data[key={key}]", dict), "name", scene_path,
-                          f"data[key={key}].id", str).upper()
-            if name in RING or name == LIDAR:
-                by_name[name] = (key, d)
+        by_name = _sample_sensors(s, datums, scene_path, where)
         if not frames_datums:
             present = tuple(c for c in RING if c in by_name)
             if not ring_subset_pairs(RING, present):
@@ -192,8 +219,12 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
         frames_datums.append(by_name)
     if len(calib_keys) != 1:
         raise InputError(scene_path, "samples[].calibration_key", f"{len(calib_keys)} calibrations (expected 1)")
+    return _Samples(frames_datums, present, calib_keys.pop())
 
-    calib_path = folder / "calibration" / f"{calib_keys.pop()}.json"
+
+def _read_calibration(folder: Path, samples: _Samples, scene_path: Path) -> _Calibration:
+    """Stage 2: `calibration/<key>.json` -> the present cameras (size from the first sample) and LiDAR mount."""
+    calib_path = folder / "calibration" / f"{samples.calibration_key}.json"
     calib = read_json(calib_path)
     if not isinstance(calib, dict):
         raise InputError(calib_path, None, "top level is not a JSON object")
@@ -205,8 +236,8 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
     index = {str(n).upper(): i for i, n in enumerate(names)}
 
     cameras = []
-    first = frames_datums[0]
-    for cam in present:
+    first = samples.frames[0]
+    for cam in samples.present:
         if cam not in index:
             raise InputError(calib_path, "names", f"camera {cam} is missing")
         i = index[cam]
@@ -216,35 +247,55 @@ def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
         h = _field(image, "height", scene_path, f"data[key={key}].datum.image", int)
         K = _intrinsics(intr[i], w, h, calib_path, f"intrinsics[{i}]")
         cameras.append(Camera(cam, K, _pose(extr[i], calib_path, f"extrinsics[{i}]")))
-    reference = REFERENCE if REFERENCE in present else present[0]
     lidar_mount = _pose(extr[index[LIDAR]], calib_path, f"extrinsics[{index[LIDAR]}]") if LIDAR in index else None
+    return _Calibration(tuple(cameras), lidar_mount)
 
+
+def _frame_images(by_name: dict[str, Keyed], cameras: tuple[Camera, ...], folder: Path, scene_path: Path,
+                  check_images: bool) -> dict[str, Path]:
+    """The image path of each camera in one sample (size and file checked with `check_images`)."""
+    images = {}
+    for cam in cameras:
+        key, d = by_name[cam.name]
+        image = _image(d, scene_path, key)
+        where = f"data[key={key}].datum.image"
+        filename = _field(image, "filename", scene_path, where, str)
+        images[cam.name] = folder / filename
+        if check_images:
+            size = (_field(image, "width", scene_path, where, int), _field(image, "height", scene_path, where, int))
+            if size != (cam.width, cam.height):
+                raise InputError(scene_path, where, f"size {size[0]}x{size[1]} differs from the scene's first "
+                                 f"sample ({cam.width}x{cam.height})")
+            _check_image(images[cam.name], cam, scene_path, f"{where}.filename")
+    return images
+
+
+def load_ddad_scene(path: str | Path, check_images: bool = False) -> Rig:
+    """One DDAD scene (a folder with scene_<sha1>.json, or that file) as a Rig."""
+    path = Path(path)
+    scene_path = path if path.is_file() else _scene_file(path)
+    folder = scene_path.parent
+    doc = read_json(scene_path)
+    if not isinstance(doc, dict):
+        raise InputError(scene_path, None, "top level is not a JSON object")
+    samples = _read_samples(doc, scene_path)
+    calib = _read_calibration(folder, samples, scene_path)
+    present = samples.present
+    reference = REFERENCE if REFERENCE in present else present[0]
     frames = []
-    for n, by_name in enumerate(frames_datums):
-        images = {}
-        for cam in cameras:
-            key, d = by_name[cam.name]
-            image = _image(d, scene_path, key)
-            where = f"data[key={key}].datum.image"
-            filename = _field(image, "filename", scene_path, where, str)
-            images[cam.name] = folder / filename
-            if check_images:
-                size = (_field(image, "width", scene_path, where, int), _field(image, "height", scene_path, where, int))
-                if size != (cam.width, cam.height):
-                    raise InputError(scene_path, where, f"size {size[0]}x{size[1]} differs from the scene's first "
-                                     f"sample ({cam.width}x{cam.height})")
-                _check_image(images[cam.name], cam, scene_path, f"{where}.filename")
-        captures = {cam.name: _capture(by_name[cam.name], cam, scene_path) for cam in cameras}
+    for n, by_name in enumerate(samples.frames):  # stage 3: one Frame per sample, posed by the reference camera
+        images = _frame_images(by_name, calib.cameras, folder, scene_path, check_images)
+        captures = {cam.name: _capture(by_name[cam.name], cam, scene_path) for cam in calib.cameras}
         ts, ego_to_world = captures[reference]
-        lidar = _lidar_sweep(by_name.get(LIDAR), lidar_mount, folder, scene_path)
+        lidar = _lidar_sweep(by_name.get(LIDAR), calib.lidar_mount, folder, scene_path)
         frames.append(Frame(f"{n:06d}", ts, ego_to_world, images, cameras=own_captures(ts, ego_to_world, captures),
                             lidar=lidar))
     ring = RING if present == RING else None
     pairs = ring_pairs(RING) if ring else ring_subset_pairs(RING, present)
-    return Rig(tuple(cameras), pairs, tuple(frames), ring, folder, extra={"scene": folder.name})
+    return Rig(calib.cameras, pairs, tuple(frames), ring, folder, extra={"scene": folder.name})
 
 
-def _lidar_sweep(keyed: tuple[str, dict] | None, mount: np.ndarray | None, folder: Path, scene_path: Path
+def _lidar_sweep(keyed: Keyed | None, mount: np.ndarray | None, folder: Path, scene_path: Path
                  ) -> LidarSweep | None:
     """The sample's LIDAR datum as a sweep (file, mount, ego pose = pose_WL @ inverse(pose_VL), time)."""
     if keyed is None or mount is None:
@@ -266,7 +317,7 @@ def _lidar_sweep(keyed: tuple[str, dict] | None, mount: np.ndarray | None, folde
     return LidarSweep(folder / filename, "dgp_npz", mount, world_from_lidar @ invert_transform(mount), ts)
 
 
-def _capture(keyed: tuple[str, dict], cam: Camera, scene_path: Path) -> tuple[int, np.ndarray]:
+def _capture(keyed: Keyed, cam: Camera, scene_path: Path) -> tuple[int, np.ndarray]:
     """(timestamp, ego_to_world) of one camera datum: its own time, pose_WC @ inverse(pose_VC)."""
     key, d = keyed
     ident = _field(d, "id", scene_path, f"data[key={key}]", dict)

@@ -31,12 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera, intrinsics_from_dict
+from ..cameras import Camera
 from ..errors import InputError
 from ..geometry import make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import CameraCapture, Frame, Rig, ring_pairs
+from ..rigfile import intrinsics_from_dict
 from .jsonio import get, number_list, read_json, scan_table
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
@@ -246,46 +247,17 @@ class NuScenesTables:
 
     def rig(self, scene: str, check_images: bool = False) -> Rig:
         """The Rig of one loaded scene (name or token); `check_images` checks every file and size."""
-        found = [s for s in self._scenes.values() if scene in (s.name, s.token)]
-        if not found:
-            raise InputError(self.dir / "scene.json", "name", f"no scene {scene!r} loaded")
-        sc = found[0]
-        data_path = self.dir / "sample_data.json"
+        sc = self._find_scene(scene)
         rows = self._rows_by_scene.get(sc.token, [])
         by_channel: dict[str, list[tuple]] = {c: [] for c in (*RING, LIDAR)}
         for r in rows:
             by_channel[r[_CHANNEL]].append(r)
-        cameras = []
-        for channel in RING:
-            chan_rows = by_channel[channel]
-            if not chan_rows:
-                raise InputError(data_path, f"scene {sc.name}", f"camera {channel} is missing (no key frames)")
-            cameras.append(self._camera(sc, channel, chan_rows))
-            chan_rows.sort(key=lambda r: r[_TIME])
-
-        if not sc.samples:
-            raise InputError(self.dir / "sample.json", f"scene {sc.name}", "has no samples")
+        cameras = self._scene_cameras(sc, by_channel)
         key_rows = {(r[_SAMPLE], r[_CHANNEL]): r for r in rows if r[_KEY] is True}
-        keyframe_of: dict[str, tuple[str, dict[str, tuple]]] = {}  # CAM_FRONT token -> (frame id, rows)
-        for _, sample in sc.samples:
-            chosen = {}
-            for channel in RING:
-                r = key_rows.get((sample, channel))
-                if r is None:
-                    raise InputError(data_path, f"sample {sample}", f"camera {channel} is missing (no key frame)")
-                chosen[channel] = r
-            keyframe_of[chosen[REFERENCE][_TOKEN]] = (sample, chosen)
-        frames = list(keyframe_of.values())
+        keyframe_of = self._key_frames(sc, key_rows)
+        frames = _sweep_frames(by_channel, keyframe_of) if self.sweeps else list(keyframe_of.values())
         lidar_rows = sorted(by_channel[LIDAR], key=lambda r: r[_TIME])
         lidar_times = [r[_TIME] for r in lidar_rows]
-        if self.sweeps:
-            frames = []
-            times = {c: [r[_TIME] for r in by_channel[c]] for c in RING}
-            for r in by_channel[REFERENCE]:
-                if r[_TOKEN] in keyframe_of:
-                    frames.append(keyframe_of[r[_TOKEN]])
-                elif r[_KEY] is not True:
-                    frames.append((r[_TOKEN], {c: _nearest(by_channel[c], times[c], r[_TIME]) for c in RING}))
 
         def lidar_of(fid: str, chosen: dict[str, tuple]) -> tuple | None:
             """The sample's key LiDAR sweep; for a 12 Hz frame the LiDAR sweep nearest in time."""
@@ -299,6 +271,42 @@ class NuScenesTables:
             tuple(self._frame(fid, ch, check_images, cameras, lidar_of(fid, ch)) for fid, ch in frames),
             RING, self.root, extra={"scene": sc.name},
         )
+
+    def _find_scene(self, scene: str) -> _Scene:
+        """Stage 1 of `rig`: the loaded scene with this name or token."""
+        found = [s for s in self._scenes.values() if scene in (s.name, s.token)]
+        if not found:
+            raise InputError(self.dir / "scene.json", "name", f"no scene {scene!r} loaded")
+        return found[0]
+
+    def _scene_cameras(self, sc: _Scene, by_channel: dict[str, list[tuple]]) -> list[Camera]:
+        """Stage 2 of `rig`: one Camera per ring channel (its rows are sorted by time in place)."""
+        data_path = self.dir / "sample_data.json"
+        cameras = []
+        for channel in RING:
+            chan_rows = by_channel[channel]
+            if not chan_rows:
+                raise InputError(data_path, f"scene {sc.name}", f"camera {channel} is missing (no key frames)")
+            cameras.append(self._camera(sc, channel, chan_rows))
+            chan_rows.sort(key=lambda r: r[_TIME])
+        return cameras
+
+    def _key_frames(self, sc: _Scene, key_rows: dict[tuple[str, str], tuple]
+                    ) -> dict[str, tuple[str, dict[str, tuple]]]:
+        """Stage 3 of `rig`: CAM_FRONT token -> (sample token, key row of each ring camera), in sample order."""
+        if not sc.samples:
+            raise InputError(self.dir / "sample.json", f"scene {sc.name}", "has no samples")
+        data_path = self.dir / "sample_data.json"
+        keyframe_of: dict[str, tuple[str, dict[str, tuple]]] = {}
+        for _, sample in sc.samples:
+            chosen = {}
+            for channel in RING:
+                r = key_rows.get((sample, channel))
+                if r is None:
+                    raise InputError(data_path, f"sample {sample}", f"camera {channel} is missing (no key frame)")
+                chosen[channel] = r
+            keyframe_of[chosen[REFERENCE][_TOKEN]] = (sample, chosen)
+        return keyframe_of
 
     def _camera(self, sc: _Scene, channel: str, rows: list[tuple]) -> Camera:
         calibs = {r[_CALIB] for r in rows}
@@ -357,6 +365,19 @@ class NuScenesTables:
                     w, h = image_size(path)
                     raise InputError(path, "size", f"image is {w}x{h}, sample_data says {cam.width}x{cam.height}")
         return Frame(frame_id, ref[_TIME], pose, images, cameras=captures, lidar=self._lidar(lidar))
+
+
+def _sweep_frames(by_channel: dict[str, list[tuple]], keyframe_of: dict[str, tuple[str, dict[str, tuple]]]
+                  ) -> list[tuple[str, dict[str, tuple]]]:
+    """12 Hz frames: every CAM_FRONT row (key frames as they are; others with each camera's nearest row)."""
+    frames = []
+    times = {c: [r[_TIME] for r in by_channel[c]] for c in RING}
+    for r in by_channel[REFERENCE]:
+        if r[_TOKEN] in keyframe_of:
+            frames.append(keyframe_of[r[_TOKEN]])
+        elif r[_KEY] is not True:
+            frames.append((r[_TOKEN], {c: _nearest(by_channel[c], times[c], r[_TIME]) for c in RING}))
+    return frames
 
 
 class _Files(Mapping):

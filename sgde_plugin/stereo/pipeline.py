@@ -93,6 +93,8 @@ class PriorConfig:
     fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
     confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
     edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
+    min_confidence: float = 0.0  # fused values whose confidence is below this are dropped (real-camera presets 0.4)
+    antialias: bool = False  # low-pass each image before it is resampled at `scale` (Gaussian, decimation sigma)
     normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
     normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
 
@@ -124,6 +126,8 @@ class PriorConfig:
             raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
         if self.device not in DEVICES:
             raise InputError(None, "device", f"expected one of {', '.join(DEVICES)}, got {self.device!r}")
+        if not 0 <= self.min_confidence < 1:
+            raise InputError(None, "min_confidence", "must be in [0, 1)")
         if not 0 < self.scale <= 2:
             raise InputError(None, "scale", "must be in (0, 2]")
         if not 0 < self.min_depth < self.max_depth:
@@ -337,6 +341,9 @@ class PriorBuilder:
                 raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
             if not self.config.color and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+            if self.config.antialias and self.config.scale < 1:
+                # the canvas samples the image about every 1/scale pixels: low-pass it first (no aliasing)
+                img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.scale**-2 - 1)))
             out[name] = img
         return out
 
@@ -461,6 +468,10 @@ class PriorBuilder:
             if mask is not None:
                 prior.depth[~mask] = 0
                 prior.confidence[~mask] = 0
+            if self.config.min_confidence > 0:
+                unsure = prior.confidence < self.config.min_confidence
+                prior.depth[unsure] = 0
+                prior.confidence[unsure] = 0
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
         timings["fuse"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
