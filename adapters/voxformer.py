@@ -21,6 +21,7 @@ that occupancy into 128 x 128 x 16 query proposals (saved as ``.query*``) for th
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -116,7 +117,7 @@ def load_query_net(path: str | Path, module: nn.Module | None = None) -> nn.Modu
             state = torch.load(str(path), map_location="cpu", weights_only=True)
             module.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)
             net = module
-    except (RuntimeError, ValueError, KeyError) as exc:
+    except (RuntimeError, ValueError, KeyError, pickle.UnpicklingError) as exc:
         raise InputError(path, None, f"not a usable query-proposal checkpoint: {str(exc).splitlines()[0]}") from None
     return net.eval()
 

@@ -247,6 +247,11 @@ def test_query_network_and_multi_sweep_accumulation(tmp_path):
     torch.save({"state_dict": lin.state_dict()}, state)
     target = nn.Linear(2, 2)
     assert torch.equal(load_query_net(state, target).weight, lin.weight)
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="junk.pt: not a usable query-proposal checkpoint"):
+        load_query_net(tmp_path / "junk.pt")
+    with pytest.raises(InputError, match="junk.pt: not a usable query-proposal checkpoint"):
+        load_query_net(tmp_path / "junk.pt", nn.Linear(2, 2))
     with pytest.raises(InputError, match="absent.pt: no such checkpoint file"):
         load_query_net(tmp_path / "absent.pt")
     with pytest.raises(ValueError, match="expected .B, C, 100, 100, 8. class logits"):

@@ -107,7 +107,7 @@ def test_discontinuity_factor():
 
 def test_cache_get_min_confidence(tmp_path):
     """get(..., min_confidence=c) keeps exactly the values whose stored confidence reaches c."""
-    from test_cache_store import build, tiny_rig
+    from cache_fixtures import build, tiny_rig
 
     from sgde_plugin import PriorCache
 

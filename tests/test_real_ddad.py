@@ -70,14 +70,16 @@ def _copy_scene(tmp_path: Path) -> Path:
     return dst
 
 
-@pytest.mark.parametrize("defect", ["truncated", "missing", "rig_lacks_camera"])
+@pytest.mark.parametrize("defect", ["truncated", "missing", "rig_lacks_camera", "unknown_preset"])
 def test_bench_real_bad_input_is_one_line_exit_2(defect: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     import json
 
     scene = _copy_scene(tmp_path)
     victim = sorted((scene / "point_cloud" / "LIDAR").iterdir())[1]
     args = ["bench", "real", str(scene)]
-    if defect == "truncated":
+    if defect == "unknown_preset":
+        pass
+    elif defect == "truncated":
         victim.write_bytes(victim.read_bytes()[:1000])
         expected = f"{victim}: not a readable .npz"
     elif defect == "missing":
@@ -90,6 +92,15 @@ def test_bench_real_bad_input_is_one_line_exit_2(defect: str, tmp_path: Path, ca
         (tmp_path / "two.json").write_text(json.dumps(doc))
         args += ["--rig", str(tmp_path / "two.json")]
         expected = "cameras: lacks CAMERA_05"
+    if defect == "unknown_preset":
+        args += ["--preset", "kitti"]
+        expected = "unknown preset 'kitti'"
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and expected in err, err
+
+
+def test_bench_options_of_real_only_are_refused_elsewhere(capsys: pytest.CaptureFixture) -> None:
+    assert main(["bench", "synth", "--preset", "ddad"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--preset" in err and "bench real" in err, err

@@ -92,7 +92,7 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
     reports = {name: evaluate_source(src, rig, images, gts, masks, config) for name, src in sources.items()}
     return {
         "dir": str(path), "frames": len(rig.frames), "cameras": rig.camera_names,
-        "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.max_depth,
+        "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.max_depth, "config": config.to_dict(),
         "sources": reports,
         "seconds": {"lidar_truth": round(t_truth, 2), "images": round(t_images, 2),
                     "total": round(time.perf_counter() - t_start, 2)},

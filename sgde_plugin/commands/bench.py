@@ -43,6 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="train-effect: LiDAR-like supervision (default) or self-supervised view synthesis")
     parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
                         help="`real` only: another pose source (sgde-rig/1 extrinsics, e.g. a calibration); repeatable")
+    parser.add_argument("--preset", default=None,
+                        help="`real` only: prior settings preset (ddad, nuscenes, fisheye, synthetic; default: none)")
+    parser.add_argument("--config", default=None, metavar="FILE",
+                        help="`real` only: YAML file of prior settings, as for `sgde prior --config`")
 
 
 def machine_description() -> dict:
@@ -87,8 +91,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.names[:1] == ["real"]:
         return run_real_bench(args)
-    if args.rig:
-        raise InputError(None, "--rig", "only `sgde bench real DIR` takes pose sources")
+    for flag, value in (("--rig", args.rig), ("--preset", args.preset), ("--config", args.config)):
+        if value:
+            raise InputError(None, flag, "only `sgde bench real DIR` takes this option")
     names = args.names or [n for n in BENCHMARKS if not (args.fast and n in SLOW)]
     for n in names:
         if n not in BENCHMARKS:
@@ -120,14 +125,17 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_real_bench(args: argparse.Namespace) -> int:
-    """`sgde bench real DIR [--rig RIG.json ...] [--json OUT]`: print the tables, optionally write the JSON."""
+    """`sgde bench real DIR [--rig RIG.json ...] [--preset P] [--config F] [--json OUT]`: tables, optionally JSON."""
     from ..benchmarks.real import report_tables, run_real
     from ..errors import InputError
     from ..io import atomic_write_text
 
     if len(args.names) != 2:
         raise InputError(None, "DIR", "`sgde bench real` takes exactly one scene folder (DIR)")
-    report = run_real(args.names[1], args.rig)
+    from ..stereo.presets import load_prior_config
+
+    config = load_prior_config(args.config, args.preset)
+    report = run_real(args.names[1], args.rig, config)
     print(report_tables(report), flush=True)
     if args.json_out:
         record = {"machine": machine_description(), "results": {"real": report}}
