@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import signal
 import sys
@@ -86,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a bad option, already reported on one line (2)
         return exc.code if isinstance(exc.code, int) else 2
+    if os.environ.get("SGDE_DEBUG"):  # debug logging of every stage (e.g. the adjustment's passes) on stderr
+        logging.basicConfig(level=logging.DEBUG, format="%(name)s: %(message)s")
     try:
         with stop_on_sigterm():
             code = args._run(args)

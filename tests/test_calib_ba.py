@@ -133,8 +133,9 @@ def test_metric_scale_comes_from_the_ego_motion(scene):
     assert np.allclose(got2, 2.0 * true_baselines, atol=0.01)
 
 
-def test_robust_adjust_survives_outliers(scene):
+def test_robust_adjust_survives_outliers(scene, caplog):
     """8% of the rays turned ~3 deg: the passes reject them and land where the clean data lands."""
+    caplog.set_level("DEBUG", logger="sgde_plugin.calib.ba")
     cams, f, pairs, ego, S_true, S0 = scene
     obs, _, _ = simulate_observations(cams, pairs, ego, per_view_pair=5, noise_px=0.3, rng=np.random.default_rng(6))
     sigma = np.full(len(obs), 0.3)
@@ -153,6 +154,8 @@ def test_robust_adjust_survives_outliers(scene):
     assert plain_rot.max() > rot.max() + 0.05  # one soft-L1 pass is bent by the outliers
     assert (~kept[bad]).mean() > 0.9 and kept[~bad].mean() > 0.8
     assert res.iterations <= 200
+    passes = [r.getMessage() for r in caplog.records if r.name == "sgde_plugin.calib.ba"]
+    assert passes[0].startswith("coarse pass") and any(m.startswith("pass: ") for m in passes), passes
 
 
 def _pm(a, b, fa, fb, ka, kb):

@@ -35,13 +35,14 @@ Gauge and metric scale (the choice made here):
 
 from __future__ import annotations
 
-import os
-import sys
+import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..geometry import invert_transform, make_transform, rodrigues, rotation_vector, skew
+
+_LOG = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -658,8 +659,7 @@ def robust_adjust(
                         max_iterations=max(1, min(sch.coarse_iterations_per_scale, budget - used)))
         res = adjust(sensor_to_ego, ego_to_world, plain, focal, reference, config=stage, start=res)
         used += res.iterations
-        if os.environ.get("SGDE_BA_DEBUG"):
-            print("coarse", scale, res.iterations, res.message, file=sys.stderr)
+        _LOG.debug("coarse pass: scale %s, %d iterations, %s", scale, res.iterations, res.message)
     cur_obs = obs
     # pass 2 (weighted, Cauchy) after rejecting in pixels, pass 3 (weighted, configured loss) after
     # rejecting in sigmas
@@ -677,8 +677,8 @@ def robust_adjust(
         res = adjust(sensor_to_ego, ego_to_world, cur_obs, focal, reference,
                      config=replace(stage_cfg, max_iterations=budget - used), start=res, start_points=old_ids)
         used += res.iterations
-        if os.environ.get("SGDE_BA_DEBUG"):
-            print("pass", limit, stage_cfg.loss, res.iterations, res.message, len(cur_obs), file=sys.stderr)
+        _LOG.debug("pass: limit %s, loss %s, %d iterations, %s, %d observations", limit, stage_cfg.loss,
+                   res.iterations, res.message, len(cur_obs))
     res.iterations = used
     kept = np.zeros(n_input, dtype=bool)
     kept[kept_idx] = True
