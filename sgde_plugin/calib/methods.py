@@ -87,24 +87,23 @@ class TrackObservations:
     edge_pair: np.ndarray  # (E,)
 
 
-def observations(matches: Sequence[PairMatches], index: dict[str, int],
-                 min_cross_time_views: int = 3) -> TrackObservations:
-    """Observations for the adjustment, with correspondences merged into tracks.
+@dataclass(frozen=True)
+class _Endpoints:
+    """Both ends of every correspondence: ids (`key_a`, `key_b`: view * 2^32 + keypoint, negative without an
+    id), and per end (first all a-ends, then all b-ends) frame, camera, ray and sigma; `pair` is the match
+    set each correspondence came from."""
 
-    A keypoint matched in several image pairs (e.g. camera A at frame t against camera B at frames
-    t', t'', ...) is one 3-D point seen in all those images: its depth is then fixed by the ego
-    motion as well as by the baseline. Tracks are the connected components of the match graph over
-    (frame, camera, keypoint) nodes; a component holding two different keypoints of one image is
-    inconsistent and falls back to one two-view point per correspondence. Matches without keypoint
-    ids (LoFTR) stay two-view points.
+    key_a: np.ndarray
+    key_b: np.ndarray
+    frame: np.ndarray
+    cam: np.ndarray
+    ray: np.ndarray
+    sig: np.ndarray
+    pair: np.ndarray
 
-    A point whose observations span two frames needs `min_cross_time_views` observations: a single
-    match between camera A at frame t and camera B at frame t' is consistent with the epipolar
-    geometry even on a car driving parallel to the ego (it only lands at a wrong depth), yet a few
-    such two-view points bent the ring by 0.4 deg on the synthetic street; with a third image the
-    track is checked. Edges whose observations were dropped get -1 in `edge_obs`.
-    """
-    M = max(index.values()) + 1 if index else 1
+
+def _endpoints(matches: Sequence[PairMatches], index: dict[str, int], M: int) -> _Endpoints | None:
+    """The correspondences of all match sets as flat arrays of their two ends; None when there are none."""
     keys_a, keys_b, fa, fb, ca, cb, ra, rb, sa, sb, pair = [], [], [], [], [], [], [], [], [], [], []
     fresh = -1
     for k, pm in enumerate(matches):
@@ -125,15 +124,23 @@ def observations(matches: Sequence[PairMatches], index: dict[str, int],
         sa.append(pm.sigma_a), sb.append(pm.sigma_b)
         pair.append(np.full(n, k))
     if not pair:
-        z = np.zeros(0, dtype=np.int64)
-        return TrackObservations(Observations(z, z, z, np.zeros((0, 3)), np.zeros(0)), np.zeros((0, 2), int), z)
-    key_a, key_b = np.concatenate(keys_a), np.concatenate(keys_b)
-    frame = np.concatenate([np.concatenate(fa), np.concatenate(fb)])
-    cam = np.concatenate([np.concatenate(ca), np.concatenate(cb)])
-    ray = np.concatenate([np.concatenate(ra), np.concatenate(rb)])
-    sig = np.concatenate([np.concatenate(sa), np.concatenate(sb)])
-    E = key_a.shape[0]
-    nodes, node_of = np.unique(np.concatenate([key_a, key_b]), return_inverse=True)
+        return None
+    return _Endpoints(
+        np.concatenate(keys_a), np.concatenate(keys_b),
+        np.concatenate([np.concatenate(fa), np.concatenate(fb)]),
+        np.concatenate([np.concatenate(ca), np.concatenate(cb)]),
+        np.concatenate([np.concatenate(ra), np.concatenate(rb)]),
+        np.concatenate([np.concatenate(sa), np.concatenate(sb)]),
+        np.concatenate(pair),
+    )
+
+
+def _merge_tracks(ends: _Endpoints, M: int) -> tuple[Observations, np.ndarray]:
+    """(observations, edge_obs): one point per consistent connected component of the match graph, one
+    two-view point per correspondence of an inconsistent one (two keypoints of one image)."""
+    frame, cam, ray, sig = ends.frame, ends.cam, ends.ray, ends.sig
+    E = ends.key_a.shape[0]
+    nodes, node_of = np.unique(np.concatenate([ends.key_a, ends.key_b]), return_inverse=True)
     na, nb = node_of[:E], node_of[E:]
     graph = coo_matrix((np.ones(E), (na, nb)), shape=(nodes.size, nodes.size))
     _, comp = connected_components(graph, directed=False)
@@ -161,19 +168,51 @@ def observations(matches: Sequence[PairMatches], index: dict[str, int],
     edge_obs = np.stack([obs_of_node[na], obs_of_node[nb]], axis=1)
     edge_obs[bad_edges, 0] = good_nodes.size + np.arange(bad_edges.size)
     edge_obs[bad_edges, 1] = good_nodes.size + bad_edges.size + np.arange(bad_edges.size)
+    return obs, edge_obs
+
+
+def _drop_weak_cross_time(obs: Observations, edge_obs: np.ndarray,
+                          min_views: int) -> tuple[Observations, np.ndarray]:
+    """Drop points seen at two times by fewer than `min_views` images (a car driving parallel to us looks
+    the same as a static point); edges that lose an observation get -1."""
+    counts = np.bincount(obs.point)
+    first = np.full(counts.size, np.iinfo(np.int64).max)
+    last = np.full(counts.size, -1)
+    np.minimum.at(first, obs.point, obs.frame)
+    np.maximum.at(last, obs.point, obs.frame)
+    weak = (first != last) & (counts < min_views)
+    obs, keep, _ = select_observations(obs, ~weak[obs.point])
+    new_index = np.full(keep.size + 1, -1)
+    new_index[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
+    return obs, new_index[edge_obs]
+
+
+def observations(matches: Sequence[PairMatches], index: dict[str, int],
+                 min_cross_time_views: int = 3) -> TrackObservations:
+    """Observations for the adjustment, with correspondences merged into tracks.
+
+    A keypoint matched in several image pairs (e.g. camera A at frame t against camera B at frames
+    t', t'', ...) is one 3-D point seen in all those images: its depth is then fixed by the ego
+    motion as well as by the baseline. Tracks are the connected components of the match graph over
+    (frame, camera, keypoint) nodes; a component holding two different keypoints of one image is
+    inconsistent and falls back to one two-view point per correspondence. Matches without keypoint
+    ids (LoFTR) stay two-view points.
+
+    A point whose observations span two frames needs `min_cross_time_views` observations: a single
+    match between camera A at frame t and camera B at frame t' is consistent with the epipolar
+    geometry even on a car driving parallel to the ego (it only lands at a wrong depth), yet a few
+    such two-view points bent the ring by 0.4 deg on the synthetic street; with a third image the
+    track is checked. Edges whose observations were dropped get -1 in `edge_obs`.
+    """
+    M = max(index.values()) + 1 if index else 1
+    ends = _endpoints(matches, index, M)
+    if ends is None:
+        z = np.zeros(0, dtype=np.int64)
+        return TrackObservations(Observations(z, z, z, np.zeros((0, 3)), np.zeros(0)), np.zeros((0, 2), int), z)
+    obs, edge_obs = _merge_tracks(ends, M)
     if min_cross_time_views > 2 and len(obs):
-        # a point seen at two times by two images only: a car driving parallel to us looks the same
-        counts = np.bincount(obs.point)
-        first = np.full(counts.size, np.iinfo(np.int64).max)
-        last = np.full(counts.size, -1)
-        np.minimum.at(first, obs.point, obs.frame)
-        np.maximum.at(last, obs.point, obs.frame)
-        weak = (first != last) & (counts < min_cross_time_views)
-        obs, keep, _ = select_observations(obs, ~weak[obs.point])
-        new_index = np.full(keep.size + 1, -1)
-        new_index[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
-        edge_obs = new_index[edge_obs]
-    return TrackObservations(obs, edge_obs, np.concatenate(pair))
+        obs, edge_obs = _drop_weak_cross_time(obs, edge_obs, min_cross_time_views)
+    return TrackObservations(obs, edge_obs, ends.pair)
 
 
 def _pair_rms(res: AdjustResult, kept: np.ndarray, tracks: TrackObservations, n_pairs: int) -> tuple[list, list]:
