@@ -69,11 +69,6 @@ class VoxelGrid:
         inside = ((points > origin) & (points < upper) & (idx >= 0) & (idx < size)).all(dim=-1)
         return idx, inside
 
-    def voxel_centres(self) -> np.ndarray:
-        """Metric centres [X, Y, Z, 3] of all voxels in the grid's frame."""
-        idx = np.stack(np.indices(self.shape), axis=-1).astype(np.float64)
-        return np.asarray(self.origin) + (idx + 0.5) * self.voxel_size
-
 
 VOXFORMER_GRID = VoxelGrid(origin=(0.0, -25.6, -2.0), voxel_size=0.2, shape=(256, 256, 32), frame="lidar")
 OCC3D_NUSCENES_GRID = VoxelGrid(origin=(-40.0, -40.0, -1.0), voxel_size=0.4, shape=(200, 200, 16), frame="ego")

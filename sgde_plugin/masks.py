@@ -125,11 +125,6 @@ def estimate_static_mask(images: Sequence[np.ndarray], settings: MaskSettings | 
     return ~full
 
 
-def merge_masks(estimated: np.ndarray, user: np.ndarray | None) -> np.ndarray:
-    """The mask to use: the user's when given (it takes precedence), else the estimated one."""
-    return estimated if user is None else np.asarray(user) > 0
-
-
 def spread_frames(n_frames: int, count: int) -> list[int]:
     """Up to `count` frame indices spread evenly over a sequence of `n_frames` (first and last included)."""
     if n_frames <= count:

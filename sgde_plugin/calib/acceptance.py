@@ -102,11 +102,6 @@ class Verdict:
         return [] if self.accepted else [(str(self.rule), str(self.reason))]
 
 
-def pair_status(counts: Mapping[tuple[str, str], int]) -> dict[tuple[str, str], str]:
-    """`observed` for a pair with at least one observation pair that passed beta, else `through ring`."""
-    return {p: OBSERVED if n > 0 else THROUGH_RING for p, n in counts.items()}
-
-
 def unconstrained_cameras(cameras: Sequence[str], observed: Sequence[tuple[str, str]], reference: str) -> list[str]:
     """Cameras that no chain of observed pairs links to the reference camera."""
     nbrs: dict[str, set[str]] = {c: set() for c in cameras}
