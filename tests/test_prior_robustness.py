@@ -45,7 +45,7 @@ def test_normalisation_keeps_a_pair_with_a_known_gain_difference():
     dark["FRONT_RIGHT"] = _exposed(images["FRONT_RIGHT"], 0.55, 25.0)
 
     def run(mode, imgs):
-        out = PriorBuilder(rig, PriorConfig(normalize=mode)).build(imgs)
+        out = PriorBuilder(rig, PriorConfig.from_settings(normalize=mode)).build(imgs)
         n, errs = 0, []
         for cam in ("FRONT", "FRONT_RIGHT"):
             p, g = out[cam].depth, depths[cam]

@@ -9,7 +9,7 @@ from .options import integer, number
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
 
-# Every PriorConfig field as an option (tests check that none is missing): name, type, help.
+# Every PriorConfig setting (flat name, stereo.config.SETTINGS) as an option (tests check that none is missing).
 # Defaults are None here: an option given on the command line wins over --config, which wins over --preset.
 SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("matcher", "str", "sgbm (default), raft-stereo (official checkpoint + the RAFT-Stereo checkout on PYTHONPATH), "
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--masks", help="folder of static masks <camera>.png (e.g. from `sgde masks`) for the "
                         "cameras without a mask of their own")
     parser.add_argument("--preset", help="per-data-set settings: ddad, nuscenes, fisheye or synthetic")
-    parser.add_argument("--config", help="YAML file of prior settings (PriorConfig field names; may name a preset)")
+    parser.add_argument("--config", help="YAML file of prior settings (flat names or groups; may name a preset)")
     settings = parser.add_argument_group("prior settings (each overrides --config and --preset)")
     for name, kind, text in SETTING_OPTIONS:
         flag = "--" + name.replace("_", "-")
