@@ -33,6 +33,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from sgde_plugin.adapters import PriorDepthNet
+from sgde_plugin.adapters.bevdepth import _depth_net_part
 from sgde_plugin.errors import InputError
 
 R18_INPUTS = ("image", "prior")
@@ -325,11 +327,8 @@ def _config_from_state(state: dict[str, Tensor] | None) -> dict[str, Any]:
     return config
 
 
-def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> tuple[PriorDepthNet, dict[str, Any]]:
     """`build_bevdepth`, network: the PriorDepthNet (config from checkpoint and overrides, weights loaded), eval."""
-    from sgde_plugin.adapters import PriorDepthNet
-    from sgde_plugin.adapters.bevdepth import _depth_net_part
-
     state, info = load_checkpoint(checkpoint) if checkpoint is not None else (None, {})
     if state is not None:
         state = dict(_depth_net_part(state))
@@ -347,7 +346,9 @@ def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> t
     return net.eval(), info
 
 
-def _bevdepth_metadata(net: Any, info: dict[str, Any], cams: int, image_size: tuple[int, int]) -> dict[str, str]:
+def _bevdepth_metadata(
+    net: PriorDepthNet, info: dict[str, Any], cams: int, image_size: tuple[int, int]
+) -> dict[str, str]:
     """`build_bevdepth`, metadata: the ONNX metadata (inputs, outputs, layout, depth bins, prior encoding)."""
     h, w = image_size
     s = net.downsample

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -22,6 +22,8 @@ from .rig import Rig, attach_files, read_rig_folder, read_rig_json
 from .tables import format_table, markdown_table
 
 METRIC_COLUMNS = ["abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "coverage"]
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -44,7 +46,7 @@ class Stopwatch:
         self.log = log
         self.stages: dict[str, float] = {}
 
-    def run(self, name: str, fn: Callable[[], Any]) -> Any:
+    def run(self, name: str, fn: Callable[[], T]) -> T:
         """Run one stage, record and log its duration."""
         t0 = time.perf_counter()
         self.log(f"[{name}] ...")

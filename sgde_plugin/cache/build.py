@@ -24,9 +24,10 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from tqdm import tqdm
 
 from ..errors import InputError
 from ..progress import progress
@@ -36,6 +37,9 @@ from .creation import prepare_scene, remove_partial_files
 from .fingerprints import ConfigLike, config_document, fingerprint_parts
 from .lock import writer_lock
 from .writer import SceneWriter
+
+if TYPE_CHECKING:  # the pipeline (OpenCV) loads in the worker that computes, not with the cache
+    from ..stereo.pipeline import PriorBuilder
 
 Compute = Callable[[str], Mapping[str, tuple[np.ndarray, np.ndarray | None]]]
 ENGINES = ("local", "ray")
@@ -47,7 +51,7 @@ class PriorCompute:
     def __init__(self, rig: Rig, config: ConfigLike):
         self.rig = rig
         self.config = config
-        self._builder: Any = None
+        self._builder: PriorBuilder | None = None
         self._masks: dict[str, np.ndarray] | None = None
         self.last_warning: str | None = None  # the builder's note when the last frame's prior came out empty
 
@@ -372,7 +376,7 @@ def build_cache(
 class _Run:
     """Progress of one build: frames built, pixels, completion times, warnings; raises a worker's input error."""
 
-    def __init__(self, start: float, bar: Any, frame_ids: list[str],
+    def __init__(self, start: float, bar: tqdm, frame_ids: list[str],
                  on_warning: Callable[[str, str], None] | None, strict: bool):
         self.start, self.bar, self.frame_ids = start, bar, frame_ids
         self.on_warning, self.strict = on_warning, strict

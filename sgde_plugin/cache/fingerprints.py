@@ -27,7 +27,7 @@ CACHE_FORMAT = "sgde-prior-cache/1"
 DIGEST_CHARS = 20
 
 
-def _default(obj: Any) -> Any:
+def _default(obj: object) -> object:
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, np.generic):
@@ -37,12 +37,12 @@ def _default(obj: Any) -> Any:
     return str(obj)
 
 
-def canonical_json(obj: Any) -> str:
+def canonical_json(obj: object) -> str:
     """Deterministic JSON text (sorted keys, no spaces) used for hashing."""
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_default)
 
 
-def digest(obj: Any) -> str:
+def digest(obj: object) -> str:
     """Short SHA-256 hex digest of an object's canonical JSON."""
     return hashlib.sha256(canonical_json(obj).encode("utf-8")).hexdigest()[:DIGEST_CHARS]
 

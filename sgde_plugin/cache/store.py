@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zarr
 
 from ..errors import InputError
 from ..rig import Rig
@@ -76,7 +77,7 @@ class PriorCache:
 
     def __init__(
         self,
-        path: Any,
+        path: Location,
         scene: str | None = None,
         *,
         expect: str | None = None,
@@ -141,7 +142,7 @@ class PriorCache:
         }
         return self._state
 
-    def _open_scene(self, group: Any, name: str) -> dict[str, Any] | None:
+    def _open_scene(self, group: zarr.Group, name: str) -> dict[str, Any] | None:
         """One scene's arrays and attributes, after checking them against each other (None while the
         scene's creation is unfinished); InputError names a damaged scene."""
         where = location_name(self.location)

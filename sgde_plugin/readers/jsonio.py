@@ -7,7 +7,7 @@ import re
 from collections.abc import Callable, Iterator
 from collections.abc import Set as AbstractSet
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -82,7 +82,7 @@ def iter_json_array(
             yield value
 
 
-def _read(f: Any, path: Path) -> str:
+def _read(f: TextIO, path: Path) -> str:
     try:
         return f.read(_CHUNK)
     except UnicodeDecodeError as exc:

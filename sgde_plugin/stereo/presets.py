@@ -43,7 +43,7 @@ def _kind(annotation: str) -> tuple[str, bool]:
     return ("dict" if base.startswith("dict") else base), nullable
 
 
-def _check_value(name: str, value: Any, source: str | Path | None) -> Any:
+def _check_value(name: str, value: object, source: str | Path | None) -> object:
     """`value` for setting `name`, type-checked (ints accepted for floats); one-line InputError otherwise."""
     base, nullable = _kind(setting_type(name))
     if value is None:
