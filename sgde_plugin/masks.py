@@ -18,10 +18,13 @@ Three frames suffice when the car moves between them; more frames make the stati
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
+
+from .errors import InputError
 
 WORK_WIDTH = 384  # estimation runs at about this width; the mask is scaled back up
 
@@ -137,11 +140,6 @@ def attach_masks(rig, folder):  # noqa: ANN001, ANN201 - Rig in, Rig out (kept f
 
     Masks already on the rig (the user's, from the rig folder's masks/) take precedence.
     """
-    from dataclasses import replace
-    from pathlib import Path
-
-    from .errors import InputError
-
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(folder, None, "mask folder not found")

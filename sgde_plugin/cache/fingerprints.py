@@ -12,17 +12,15 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, Union
+from typing import Any, Union
 
 import numpy as np
 
-if TYPE_CHECKING:  # types only: the cache reader does not load the stereo pipeline (OpenCV)
-    from ..rig import Rig
-    from ..stereo.config import PriorConfig
-
+from ..rig import Rig
+from ..stereo.config import PRIOR_ALGO_VERSION, PriorConfig
 
 # A PriorConfig, its `to_dict()` mapping, or None for the defaults.
-ConfigLike = Union["PriorConfig", Mapping[str, Any], None]  # noqa: UP007 - a forward reference
+ConfigLike = Union[PriorConfig, Mapping[str, Any], None]  # noqa: UP007 - a runtime alias on Python 3.10
 CACHE_FORMAT = "sgde-prior-cache/1"
 DIGEST_CHARS = 20
 
@@ -50,8 +48,6 @@ def digest(obj: object) -> str:
 def config_dict(config: ConfigLike) -> dict[str, Any]:
     """A PriorConfig (anything with `to_dict()`) or a mapping, as a plain JSON-able dict."""
     if config is None:
-        from ..stereo.config import PriorConfig  # lazy: reading a cache does not load the stereo pipeline
-
         config = PriorConfig()
     if hasattr(config, "to_dict"):
         config = config.to_dict()
@@ -62,8 +58,6 @@ def config_dict(config: ConfigLike) -> dict[str, Any]:
 
 def default_algo_version() -> str:
     """The prior algorithm version of the installed code (PRIOR_ALGO_VERSION)."""
-    from ..stereo.config import PRIOR_ALGO_VERSION  # lazy, as above
-
     return str(PRIOR_ALGO_VERSION)
 
 

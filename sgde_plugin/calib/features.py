@@ -7,6 +7,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from ..errors import InputError
 
@@ -97,8 +98,7 @@ def load_loftr(weights: str | Path | None):
     The file may hold a plain state dict or a Lightning-style {"state_dict": ...}. A missing path or a
     file that does not fit the model is an InputError.
     """
-    import torch
-    from kornia.feature import LoFTR
+    from kornia.feature import LoFTR  # kornia's feature zoo loads only for LoFTR
 
     if weights is None:
         raise InputError(None, "--loftr-weights", "LoFTR needs a local checkpoint path (nothing is downloaded)")
@@ -134,8 +134,6 @@ def loftr_match(
     model, image_a: np.ndarray, image_b: np.ndarray, box_a=None, box_b=None, min_confidence: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
     """LoFTR matches between two images, optionally inside boxes (x0, y0, x1, y1): native pixels (N, 2) x 2."""
-    import torch
-
     ga, xa, ya = _box_crop(to_gray(image_a), box_a)
     gb, xb, yb = _box_crop(to_gray(image_b), box_b)
     if min(ga.shape) < 16 or min(gb.shape) < 16:

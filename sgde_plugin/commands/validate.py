@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..tables import format_table
+
 HELP = "check a rig folder (sgde-rig/1 or a supported data set); exit 0 if valid, 2 with one line if not"
 
 
@@ -68,7 +70,6 @@ def run(args: argparse.Namespace) -> int:
     from ..io import decode_check
     from ..progress import progress
     from ..readers.detect import load_rig
-    from ..tables import format_table
 
     rig = load_rig(args.dir, check_images=True)
     if not args.quick:
