@@ -113,7 +113,10 @@ class ConfidenceSettings:
 
     disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
     edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
-    min_confidence: float = 0.0  # fused values whose confidence is below this are dropped (real-camera presets 0.4)
+    min_confidence: float = 0.0  # fused values whose confidence is below this are dropped (real-camera presets 0.2)
+    edge_depth_ratio: float = 0.0  # > 0: fused confidence x a factor falling from 1 at a local depth ratio of
+    #                                1 + this to 0 at 1 + 5x this (occlusion edges); 0 = off (real cameras 0.1)
+    edge_window_px: int = 15  # the window of that ratio, source-camera pixels
 
 
 GROUPS: dict[str, type] = {
@@ -236,7 +239,9 @@ class PriorConfig:
             raise InputError(None, "scale", "must be in (0, 2]")
         if not 0 < g.min_depth < g.max_depth:
             raise InputError(None, "min_depth/max_depth", "need 0 < min_depth < max_depth")
-        for name in ("block_size", "matcher_batch", "matcher_pad"):
+        if self.confidence.edge_depth_ratio < 0:
+            raise InputError(None, "edge_depth_ratio", "must not be negative")
+        for name in ("block_size", "matcher_batch", "matcher_pad", "edge_window_px"):
             if self.get(name) < 1:
                 raise InputError(None, name, "must be at least 1")
         if self.sgbm.block_size % 2 == 0:

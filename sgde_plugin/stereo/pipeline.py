@@ -22,6 +22,7 @@ from ..rig import Frame, Rig
 from .backproject import BackProjection, backprojection, fuse_into
 from .config import PRIOR_ALGO_VERSION, PriorConfig
 from .filters import (
+    depth_edge_factor,
     discontinuity_factor,
     grey_float,
     lr_check,
@@ -323,13 +324,17 @@ class PriorBuilder:
         for values, _ in results:
             for camera, index, z, c in values:
                 fuse_into(out[camera].depth, out[camera].confidence, index, z, c)
+        conf_cfg = self.config.confidence
         for name, prior in out.items():
             mask = masks.get(name)
             if mask is not None:
                 prior.depth[~mask] = 0
                 prior.confidence[~mask] = 0
-            if self.config.confidence.min_confidence > 0:
-                unsure = prior.confidence < self.config.confidence.min_confidence
+            if conf_cfg.edge_depth_ratio > 0:  # occlusion edges of the fused map (pairs and sides together)
+                prior.confidence *= depth_edge_factor(prior.depth, conf_cfg.edge_depth_ratio, conf_cfg.edge_window_px)
+                prior.depth[prior.confidence <= 0] = 0
+            if conf_cfg.min_confidence > 0:
+                unsure = prior.confidence < conf_cfg.min_confidence
                 prior.depth[unsure] = 0
                 prior.confidence[unsure] = 0
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
