@@ -13,8 +13,6 @@ import importlib.util
 import sys
 from typing import TYPE_CHECKING, Any
 
-from .bevdepth import inject_prior
-
 if TYPE_CHECKING:  # types only: importing this registry for mmdet3d must stay light
     from torch import nn
 
@@ -47,6 +45,8 @@ def _models_registry() -> Any | None:
 
 def inject_prior_from_config(depth_net: nn.Module | dict[str, Any], **kwargs: Any) -> nn.Module:
     """``inject_prior`` for configs: ``depth_net`` may be a module or a config dict built by mmdet3d's MODELS."""
+    from .bevdepth import inject_prior
+
     if isinstance(depth_net, dict):
         registry = _models_registry()
         if registry is None:
