@@ -198,14 +198,7 @@ class PriorBuilder:
         t_start = time.perf_counter()
         if frame is not None:
             self._plan_for(self._base_rig.as_captured(frame))
-        masks = dict(self._static_masks) if masks is None else dict(masks)
-        masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
-        for name, m in masks.items():
-            if m is not None and name in self.rig.camera_names:
-                cam = self.rig.camera(name)
-                if m.shape != (cam.height, cam.width):
-                    raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
-                                     f"{cam.width}x{cam.height}")
+        masks = self._masks(masks)
         grey = self._prepare(images)
         batched = self._match_batched(grey, masks)
         if self.threads > 1 and len(self.plans) > 1:
@@ -214,8 +207,34 @@ class PriorBuilder:
         else:
             results = [self._pair_values(p, grey, masks, batched) for p in self.plans]
         t0 = time.perf_counter()
+        out = self._fuse([values for values, _ in results], masks)
+        timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
+        timings["fuse"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+        self.last_timings = timings
+        self.last_warning = self._empty_frame_warning(out)
+        return out
+
+    def _masks(self, masks: Mapping[str, np.ndarray | None] | None) -> dict[str, np.ndarray | None]:
+        """`build`, stage 1: the masks as bool (True = use; the rig's static masks by default), sizes checked."""
+        masks = dict(self._static_masks) if masks is None else dict(masks)
+        masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
+        for name, m in masks.items():
+            if m is not None and name in self.rig.camera_names:
+                cam = self.rig.camera(name)
+                if m.shape != (cam.height, cam.width):
+                    raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
+                                     f"{cam.width}x{cam.height}")
+        return masks
+
+    def _fuse(
+        self, pair_values: list[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]],
+        masks: Mapping[str, np.ndarray | None],
+    ) -> dict[str, PriorMap]:
+        """`build`, last stage: every pair's values fused into each camera's map in pair order, then the
+        masks, the occlusion-edge factor and the confidence threshold applied."""
         out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
-        for values, _ in results:
+        for values in pair_values:
             for camera, index, z, c in values:
                 fuse_into(out[camera].depth, out[camera].confidence, index, z, c)
         conf_cfg = self.config.confidence
@@ -231,11 +250,6 @@ class PriorBuilder:
                 unsure = prior.confidence < conf_cfg.min_confidence
                 prior.depth[unsure] = 0
                 prior.confidence[unsure] = 0
-        timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
-        timings["fuse"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - t_start
-        self.last_timings = timings
-        self.last_warning = self._empty_frame_warning(out)
         return out
 
     def _canvases(
