@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .rig import Rig
 
 WORK_WIDTH = 384  # estimation runs at about this width; the mask is scaled back up
 
@@ -135,7 +136,7 @@ def spread_frames(n_frames: int, count: int) -> list[int]:
     return sorted({round(i * (n_frames - 1) / (count - 1)) for i in range(count)})
 
 
-def attach_masks(rig, folder):  # noqa: ANN001, ANN201 - Rig in, Rig out (kept free of a rig import cycle)
+def attach_masks(rig: Rig, folder: str | Path) -> Rig:
     """The rig with `folder/<camera>.png` as static masks for every camera that has no mask of its own.
 
     Masks already on the rig (the user's, from the rig folder's masks/) take precedence.

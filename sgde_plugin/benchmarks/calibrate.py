@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -120,7 +121,7 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
     return row
 
 
-def accuracy(peer: str | None = None, rigs=ACCURACY_RIGS) -> dict[str, Any]:
+def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS) -> dict[str, Any]:
     """GLC (and a peer) on the presets and the random rigs; the table rows and which targets hold."""
     rows = []
     for preset, seed, capture in rigs:

@@ -189,7 +189,7 @@ def box_world_rig(
     noise_m: float = 0.05,
     step_m: float = 1.0,
     seed: int = 0,
-):
+) -> tuple[Rig, Rig, dict[str, dict[str, np.ndarray]]]:
     """A ring of pinholes driving through the textured box: (true rig, perturbed rig, images[frame][camera]).
 
     The perturbed rig tags itself like a synthetic preset (extra["synth"]), so beta is BETA_SYNTH.

@@ -5,9 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from .options import integer, number
+
+if TYPE_CHECKING:  # the command loads the rig (and torch) only when it runs
+    from ..rig import Rig
 
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
@@ -114,7 +118,7 @@ def _scene_from_location(location: str) -> str | None:
     return parts[-1] if parts else None
 
 
-def load_rig_with_override(location: str, rig_json: str | None):
+def load_rig_with_override(location: str, rig_json: str | None) -> Rig:
     """The rig of DIR (images checked), with the cameras and pairs of --rig when given."""
     from ..readers.detect import load_rig
     from ..rig import read_rig_json
