@@ -5,7 +5,14 @@ import pytest
 import torch
 
 from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
-from sgde_plugin.calib.features import load_loftr, loftr_match, match_descriptors, sift_features
+from sgde_plugin.calib.features import (
+    Keypoints,
+    load_loftr,
+    loftr_match,
+    mark_fixed,
+    match_descriptors,
+    sift_features,
+)
 from sgde_plugin.calib.outliers import epipolar_angle_deg, essential_inliers, rotation_to_z
 from sgde_plugin.calib.overlap import overlap_grid, pixels_per_radian
 from sgde_plugin.calib.simulate import box_world_rig
@@ -142,3 +149,24 @@ def test_fisheye_overlap_view_maps_back_to_the_fisheye():
     assert ok.all() and view.valid[rows, cols].all()
     assert np.allclose(src_uv[:, 0], view.map_x[rows, cols], atol=1e-3)
     assert np.allclose(src_uv[:, 1], view.map_y[rows, cols], atol=1e-3)
+
+
+def test_keypoints_that_stay_at_one_pixel_are_marked_fixed():
+    """Texture that moves with the car (or lies at infinity) recurs at the same pixel in every frame: it is
+    marked, texture of the static world that moves in the image is not, nor a different keypoint that
+    happens to sit at the same pixel."""
+    rng = np.random.default_rng(0)
+    desc = rng.random((30, 128)).astype(np.float32)
+    uv0 = rng.uniform(0, 300, (30, 2))
+    frames = []
+    for t in range(3):
+        uv = uv0.copy()
+        uv[10:] += [25.0 * t, 3.0 * t]  # the static world flows past; keypoints 0-9 ride along with the car
+        d = desc.copy()
+        if t == 2:
+            d[5] = rng.random(128)  # keypoint 5 in frame 2 is another feature at the same pixel
+        frames.append(Keypoints(uv + rng.normal(scale=0.2, size=uv.shape), d))
+    mark_fixed(frames)
+    assert frames[0].fixed[:10].all() and not frames[0].fixed[10:].any()
+    assert frames[2].fixed[:5].all() and frames[2].fixed[6:10].all() and not frames[2].fixed[5]
+    assert frames[1].subset(np.arange(8, 12)).fixed.tolist() == [True, True, False, False]
