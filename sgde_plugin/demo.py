@@ -159,7 +159,7 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Call
     from .calib import calibrate
     from .figures import CameraPanel, save_bev_points, save_prior_panels
     from .rig import write_rig_json
-    from .stereo.pipeline import PriorConfig
+    from .stereo.config import PriorConfig
     from .synth.sequence import write_synth
 
     out = Path(out)

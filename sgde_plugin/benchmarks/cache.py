@@ -42,7 +42,7 @@ def _rig(tmp: Path, rendered: int, frames: int):
 def _build(rig: Any, out: Path, workers: int) -> dict[str, float]:
     """One build; with one worker (in this process) its CPU time per frame is load-independent."""
     from ..cache.build import build_cache
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.config import PriorConfig
 
     cpu = time.process_time()
     report = build_cache(rig, out, PriorConfig(), workers=workers, scene="bench", show_progress=False)

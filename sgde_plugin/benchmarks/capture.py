@@ -24,7 +24,7 @@ def _score(seq: Any, rig_builder: Any, use_frames: bool, config: Any) -> dict[st
     from ..stereo.pipeline import PriorBuilder
 
     builder = PriorBuilder(rig_builder, config)
-    evaluator = PriorEvaluator(seq.rig_true, config.max_depth)
+    evaluator = PriorEvaluator(seq.rig_true, config.geometry.max_depth)
     for fid, images in seq.images.items():
         out = builder.build(images, frame=fid if use_frames else None)
         evaluator.add({c: m.depth for c, m in out.items()}, seq.depths[fid], frame=fid)
@@ -35,7 +35,7 @@ def _score(seq: Any, rig_builder: Any, use_frames: bool, config: Any) -> dict[st
 def run(fast: bool = False, preset: str = "nuscenes", frames: int = 3, seed: int = 0, sweep_ms: float = 50.0,
         scale: float | None = None) -> dict[str, Any]:
     """The three arms' accuracy and coverage; `fast`: 2 frames at half size."""
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.config import PriorConfig
     from ..synth.sequence import synth_sequence
 
     t0 = time.perf_counter()

@@ -70,7 +70,7 @@ def run(fast: bool = False) -> dict[str, Any]:
 
     from ..readers.detect import load_rig
     from ..rig import read_rig_json
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.config import PriorConfig
     from ..synth.sequence import write_synth
 
     frames = 2 if fast else 3
@@ -87,12 +87,12 @@ def run(fast: bool = False) -> dict[str, Any]:
             torch.manual_seed(0)
             ckpt = Path(tmp) / f"{name}.pt"
             torch.save(getattr(flow_models, name)().state_dict(), ckpt)
-            config = PriorConfig(matcher="torch", matcher_path=str(ckpt), matcher_arch=MODELS[name],
-                                 matcher_input_scale=1 / 127.5, matcher_flow_output=True)
+            config = PriorConfig.from_settings(matcher="torch", matcher_path=str(ckpt), matcher_arch=MODELS[name],
+                                               matcher_input_scale=1 / 127.5, matcher_flow_output=True)
             result["models"][name] = _measure(rig, config, frames)
         official = os.environ.get("SGDE_BENCH_RAFT_STEREO")
         if official:
-            config = PriorConfig(matcher="raft-stereo", matcher_path=official)
+            config = PriorConfig.from_settings(matcher="raft-stereo", matcher_path=official)
             result["models"]["raft-stereo (official)"] = _measure(rig, config, frames)
     result["peak_rss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 2)
     result["load_average_after"] = [round(x, 2) for x in os.getloadavg()]

@@ -36,7 +36,7 @@ def random_rig_accuracy(seed: int, config: Any = None, frames: int = 2, scale: f
     config = config or PriorConfig()
     seq = synth_sequence("random", frames, seed=seed, scale=scale, pose_noise_deg=0.0, pose_noise_m=0.0)
     builder = PriorBuilder(seq.rig_true, config)
-    evaluator = PriorEvaluator(seq.rig_true, config.max_depth)
+    evaluator = PriorEvaluator(seq.rig_true, config.geometry.max_depth)
     seconds = 0.0
     for fid, images in seq.images.items():
         t0 = time.perf_counter()
@@ -128,7 +128,7 @@ def run(fast: bool = False) -> dict[str, Any]:
     setup_s = time.perf_counter() - t0
 
     wall, cpu, parts, match_only = [], [], [], []
-    evaluator = PriorEvaluator(rig, config.max_depth)
+    evaluator = PriorEvaluator(rig, config.geometry.max_depth)
     for i, imgs in enumerate(images):
         builder.build(imgs)  # warm-up
         for _ in range(repeats):
@@ -149,7 +149,7 @@ def run(fast: bool = False) -> dict[str, Any]:
     result: dict[str, Any] = {
         "rig": "synthetic nuscenes, 6 x 1600x900, true extrinsics",
         "pairs": len(builder.plans),
-        "scale": config.scale,
+        "scale": config.geometry.scale,
         "frames": frames,
         "repeats_per_frame": repeats,
         "opencv_threads": cv2.getNumThreads(),

@@ -21,7 +21,7 @@ from ..errors import InputError
 
 if TYPE_CHECKING:  # types only: `sgde bench` loads the prior pipeline when this benchmark runs
     from ..rig import Rig
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.config import PriorConfig
 
 COLUMNS = ("abs_rel", "sq_rel", "rmse", "a1", "n_prior", "coverage", "n_overlap")
 
@@ -57,7 +57,7 @@ def evaluate_source(rig: Rig, rig_overlap: Rig, images: dict, gts: dict, masks: 
     t0 = time.perf_counter()
     builder = PriorBuilder(rig, config)
     setup = time.perf_counter() - t0
-    evaluator = PriorEvaluator(rig_overlap, config.max_depth, sparse_truth=True)
+    evaluator = PriorEvaluator(rig_overlap, config.geometry.max_depth, sparse_truth=True)
     build = score = 0.0
     for fid, frame_images in images.items():
         t1 = time.perf_counter()
@@ -77,7 +77,7 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
 
     `max_frames` keeps the first frames only (for quick checks; the benchmark uses all)."""
     from ..readers.detect import load_rig
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.config import PriorConfig
 
     t_start = time.perf_counter()
     config = config or PriorConfig()
@@ -92,7 +92,7 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
     reports = {name: evaluate_source(src, rig, images, gts, masks, config) for name, src in sources.items()}
     return {
         "dir": str(path), "frames": len(rig.frames), "cameras": rig.camera_names,
-        "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.max_depth, "config": config.to_dict(),
+        "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.geometry.max_depth, "config": config.to_dict(),
         "sources": reports,
         "seconds": {"lidar_truth": round(t_truth, 2), "images": round(t_images, 2),
                     "total": round(time.perf_counter() - t_start, 2)},

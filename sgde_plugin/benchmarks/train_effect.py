@@ -116,7 +116,7 @@ def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray:
     """Priors [F,N,H,W] from the project's prior pipeline (SGBM on rectified adjacent pairs)."""
     names = tuple(c.name for c in cameras)
     rig = Rig(tuple(cameras), ring_pairs(names), (Frame("0", 0),), names)
-    builder = PriorBuilder(rig, PriorConfig(scale=1.0))
+    builder = PriorBuilder(rig, PriorConfig.from_settings(scale=1.0))
     out = np.zeros(images.shape[:-1], np.float32)
     for k in range(images.shape[0]):
         maps = builder.build({c.name: images[k, i] for i, c in enumerate(cameras)})

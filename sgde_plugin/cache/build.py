@@ -329,7 +329,7 @@ def build_cache(
     if engine not in ENGINES:
         raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
     if config is None and compute is None:
-        from ..stereo.pipeline import PriorConfig
+        from ..stereo.config import PriorConfig
 
         config = PriorConfig()
     if config is None:
@@ -421,9 +421,9 @@ def default_workers(config: ConfigLike = None) -> int:
     """Worker processes by default: one per CPU; a learned matcher: as many as memory allows (2 GiB each),
     and one on a GPU (torch then uses the CPUs inside that worker)."""
     cpus = usable_cpus()
-    if not getattr(config, "learned", False):
+    if not getattr(config, "learned", False):  # None or a fingerprint mapping: SGBM
         return cpus
-    if getattr(config, "device", "cpu") != "cpu":
+    if config.matcher.device != "cpu":  # a PriorConfig
         return 1
     memory = available_memory()
     return cpus if memory is None else max(1, min(cpus, memory // LEARNED_WORKER_BYTES))

@@ -18,7 +18,7 @@ import numpy as np
 
 if TYPE_CHECKING:  # types only: the cache reader does not load the stereo pipeline (OpenCV)
     from ..rig import Rig
-    from ..stereo.pipeline import PriorConfig
+    from ..stereo.config import PriorConfig
 
 
 # A PriorConfig, its `to_dict()` mapping, or None for the defaults.
@@ -50,7 +50,7 @@ def digest(obj: Any) -> str:
 def config_dict(config: ConfigLike) -> dict[str, Any]:
     """A PriorConfig (anything with `to_dict()`) or a mapping, as a plain JSON-able dict."""
     if config is None:
-        from ..stereo.pipeline import PriorConfig  # lazy: reading a cache does not load the stereo pipeline
+        from ..stereo.config import PriorConfig  # lazy: reading a cache does not load the stereo pipeline
 
         config = PriorConfig()
     if hasattr(config, "to_dict"):
@@ -62,7 +62,7 @@ def config_dict(config: ConfigLike) -> dict[str, Any]:
 
 def default_algo_version() -> str:
     """The prior algorithm version of the installed code (PRIOR_ALGO_VERSION)."""
-    from ..stereo.pipeline import PRIOR_ALGO_VERSION  # lazy, as above
+    from ..stereo.config import PRIOR_ALGO_VERSION  # lazy, as above
 
     return str(PRIOR_ALGO_VERSION)
 

@@ -9,7 +9,7 @@ from .options import integer, number
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
 
-# Every PriorConfig field as an option (tests check that none is missing): name, type, help.
+# Every PriorConfig setting (flat name, stereo.config.SETTINGS) as an option (tests check that none is missing).
 # Defaults are None here: an option given on the command line wins over --config, which wins over --preset.
 SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("matcher", "str", "sgbm (default), raft-stereo (official checkpoint + the RAFT-Stereo checkout on PYTHONPATH), "
@@ -45,7 +45,9 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
     ("confidence_disparity_px", "float", "confidence x d / (d + this): small disparities are less sure (2)"),
     ("edge_jump_px", "float", "confidence x jump / local disparity range beyond this, 0 = off (0)"),
-    ("min_confidence", "float", "drop fused values less confident than this, 0-1 (0; real-camera presets 0.4)"),
+    ("min_confidence", "float", "drop fused values less confident than this, 0-1 (0; real-camera presets 0.2)"),
+    ("edge_depth_ratio", "float", "confidence falls from local depth ratio 1+r to 1+5r, 0 = off (0; real cameras 0.1)"),
+    ("edge_window_px", "int", "window of that depth ratio, source pixels (15)"),
     ("antialias", "bool", "low-pass each image before resampling it at --scale (no)"),
     ("normalize", "str", "photometric normalisation of each rectified pair: none, gain or local (none)"),
     ("normalize_sigma", "float", "local normalisation window (Gaussian sigma), rectified pixels (8)"),
@@ -61,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--masks", help="folder of static masks <camera>.png (e.g. from `sgde masks`) for the "
                         "cameras without a mask of their own")
     parser.add_argument("--preset", help="per-data-set settings: ddad, nuscenes, fisheye or synthetic")
-    parser.add_argument("--config", help="YAML file of prior settings (PriorConfig field names; may name a preset)")
+    parser.add_argument("--config", help="YAML file of prior settings (flat names or groups; may name a preset)")
     settings = parser.add_argument_group("prior settings (each overrides --config and --preset)")
     for name, kind, text in SETTING_OPTIONS:
         flag = "--" + name.replace("_", "-")

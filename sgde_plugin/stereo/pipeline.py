@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -20,8 +20,9 @@ from ..errors import InputError
 from ..geometry import rotation_vector
 from ..rig import Frame, Rig
 from .backproject import BackProjection, backprojection, fuse_into
+from .config import PRIOR_ALGO_VERSION, PriorConfig
 from .filters import (
-    NORMALIZATIONS,
+    depth_edge_factor,
     discontinuity_factor,
     grey_float,
     lr_check,
@@ -30,149 +31,9 @@ from .filters import (
     refine_disparity,
     remove_islands,
 )
-from .matchers import Matcher, SGBMMatcher, load_learned_matcher, model_digests
+from .matchers import Matcher
 from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair, torch_threads
 from .virtual import virtual_pinholes
-
-PRIOR_ALGO_VERSION = "1"
-
-MATCHERS = ("sgbm", "raft-stereo", "torch", "onnx")
-LEARNED_MATCHERS = MATCHERS[1:]
-FISHEYE_PATHS = ("direct", "virtual")
-DEVICES = ("cpu", "cuda")
-# fields that change how a prior is computed, not what it is (device, batching): not fingerprinted
-RUNTIME_FIELDS = ("device", "matcher_batch")
-# fields whose default (None) depends on the matcher: SGBM's value, a learned matcher's value
-MATCHER_DEFAULTS: dict[str, tuple[Any, Any]] = {
-    "color": (False, True),  # learned matchers were trained on RGB
-    "refine_iterations": (1, 0),  # the Gauss-Newton step undoes SGBM's pixel locking, and hurts learned output
-    "min_texture": (0.5, 0.0),  # learned matchers fill weakly textured rows from context
-}
-
-
-@dataclass(frozen=True)
-class PriorConfig:
-    """Everything that changes the prior: matcher, matching scale, depth range, filters, geometry.
-
-    Fields left at None take the matcher's own default (see MATCHER_DEFAULTS): after construction
-    they hold the resolved value, so readers never see None. `sgde prior --config FILE --preset NAME`
-    reaches every field (sgde_plugin.stereo.presets).
-    """
-
-    matcher: str = "sgbm"  # "sgbm"; learned: "raft-stereo" (official checkpoint), "torch", "onnx"
-    matcher_path: str | None = None  # learned matchers: checkpoint / TorchScript / ONNX file
-    matcher_arch: str | None = None  # "pkg.module:factory" building the module of a torch state dict
-    matcher_options: dict[str, Any] = field(default_factory=dict)  # factory keywords / RAFT-Stereo args
-    matcher_iters: int | None = None  # learned: forward(..., iters=N); raft-stereo default 32 (its demo's)
-    matcher_input_scale: float = 1.0  # learned matchers: multiply [0, 255] pixels by this
-    matcher_flow_output: bool | None = None  # output is a flow (disparity = -x); raft-stereo: True
-    matcher_pad: int = 32  # learned matchers: pad the input (edge values, centred) to multiples of this
-    device: str = "cpu"  # learned matchers: "cpu" or "cuda" (torch device / onnxruntime provider)
-    matcher_batch: int = 2  # learned matchers: images per forward call (same-size inputs of one frame)
-    scale: float = 0.5  # matching resolution relative to the source cameras
-    min_depth: float = 1.5
-    max_depth: float = 80.0
-    block_size: int = 3  # SGBM settings tuned on the synthetic world (all three presets)
-    p1: int = 8
-    p2: int = 32
-    uniqueness: int = 15
-    speckle_window: int = 100
-    speckle_range: int = 2
-    lr_max_diff: float = 1.0  # left-right consistency, rectified pixels
-    border_px: int = 2  # matches this far (+ half a block) from an image border are dropped
-    refine_iterations: int | None = None  # sub-pixel Gauss-Newton steps after matching (0 = off); SGBM 1, learned 0
-    min_zncc: float = 0.5  # photometric check after the shift (7x7 windows): ZNCC above this,
-    max_abs_diff: float = 8.0  # mean absolute difference (grey levels) below this,
-    min_texture: float | None = None  # RMS x-gradient (grey levels / px) above this (full confidence at 2x);
-    #                                   0 = off; SGBM 0.5, learned 0
-    min_region_px: int = 200  # final speckle filter: smallest region of similar disparity kept
-    color: bool | None = None  # match RGB instead of grey; SGBM False, learned True
-    margin_px: int = 8
-    max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
-    max_elevation_deg: float = 50.0
-    fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
-    confidence_disparity_px: float = 2.0  # confidence x d / (d + this): small disparities give uncertain depth
-    edge_jump_px: float = 0.0  # > 0: confidence x jump / local disparity range where that range exceeds it
-    min_confidence: float = 0.0  # fused values whose confidence is below this are dropped (real-camera presets 0.4)
-    antialias: bool = False  # low-pass each image before it is resampled at `scale` (Gaussian, decimation sigma)
-    normalize: str = "none"  # per-overlap photometric normalisation before matching: "none", "gain", "local"
-    normalize_sigma: float = 8.0  # "local": Gaussian window of the local mean and contrast, rectified px
-
-    def __post_init__(self) -> None:
-        if self.matcher not in MATCHERS:
-            raise InputError(None, "matcher", f"unknown matcher {self.matcher!r} (expected {', '.join(MATCHERS)})")
-        self._resolve_defaults()
-        self._check()
-
-    def _resolve_defaults(self) -> None:
-        """Replace the None of matcher-dependent fields by the matcher's default."""
-        learned = self.matcher in LEARNED_MATCHERS
-        for name, (sgbm, nn) in MATCHER_DEFAULTS.items():
-            if getattr(self, name) is None:
-                object.__setattr__(self, name, nn if learned else sgbm)
-        if self.matcher_flow_output is None:
-            object.__setattr__(self, "matcher_flow_output", self.matcher == "raft-stereo")
-        if self.matcher_iters is None and self.matcher == "raft-stereo":
-            object.__setattr__(self, "matcher_iters", 32)
-        object.__setattr__(self, "matcher_options", dict(self.matcher_options or {}))
-
-    def _check(self) -> None:
-        """One-line InputError for a value out of its range."""
-        if self.learned and not self.matcher_path:
-            raise InputError(None, "matcher_path", f"matcher {self.matcher!r} needs a model file")
-        if self.normalize not in NORMALIZATIONS:
-            raise InputError(None, "normalize", f"expected one of {', '.join(NORMALIZATIONS)}")
-        if self.fisheye not in FISHEYE_PATHS:
-            raise InputError(None, "fisheye", f"expected one of {', '.join(FISHEYE_PATHS)}")
-        if self.device not in DEVICES:
-            raise InputError(None, "device", f"expected one of {', '.join(DEVICES)}, got {self.device!r}")
-        if not 0 <= self.min_confidence < 1:
-            raise InputError(None, "min_confidence", "must be in [0, 1)")
-        if not 0 < self.scale <= 2:
-            raise InputError(None, "scale", "must be in (0, 2]")
-        if not 0 < self.min_depth < self.max_depth:
-            raise InputError(None, "min_depth/max_depth", "need 0 < min_depth < max_depth")
-        for name in ("block_size", "matcher_batch", "matcher_pad"):
-            if getattr(self, name) < 1:
-                raise InputError(None, name, "must be at least 1")
-        if self.block_size % 2 == 0:
-            raise InputError(None, "block_size", "must be odd")
-        if self.matcher_iters is not None and self.matcher_iters < 1:
-            raise InputError(None, "matcher_iters", "must be at least 1")
-        for name in ("refine_iterations", "min_region_px", "border_px", "margin_px", "min_texture"):
-            if getattr(self, name) < 0:
-                raise InputError(None, name, "must not be negative")
-
-    @property
-    def learned(self) -> bool:
-        """True for a learned matcher (anything but SGBM)."""
-        return self.matcher in LEARNED_MATCHERS
-
-    def settings(self) -> dict[str, Any]:
-        """Every field by name (resolved values): what `--config` files hold; PriorConfig(**settings()) == self."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
-    def to_dict(self) -> dict[str, Any]:
-        """The fingerprint document: every field but the runtime ones, the algorithm version and, for a
-        learned matcher, the hashes of its model files and of its architecture's source code."""
-        d = {k: v for k, v in self.settings().items() if k not in RUNTIME_FIELDS}
-        d["algo_version"] = PRIOR_ALGO_VERSION
-        if self.learned:
-            d.update(model_digests(self.matcher, self.matcher_path, self.matcher_arch))
-        return d
-
-    def make_matcher(self) -> Matcher:
-        """The configured matcher."""
-        if self.matcher == "sgbm":
-            return SGBMMatcher(
-                block_size=self.block_size, p1=self.p1, p2=self.p2, uniqueness=self.uniqueness,
-                speckle_window=self.speckle_window, speckle_range=self.speckle_range,
-            )
-        return load_learned_matcher(
-            str(self.matcher_path), self.matcher_arch, self.matcher_input_scale, bool(self.matcher_flow_output),
-            self.matcher_pad, kind=self.matcher, options=self.matcher_options, iters=self.matcher_iters,
-            device=self.device, batch_size=self.matcher_batch,
-        )
 
 
 @dataclass
@@ -247,7 +108,7 @@ class PriorBuilder:
         self.config = config or PriorConfig()
         # pairs processed in parallel: OpenCV's thread count by default (1 in a single-threaded worker);
         # a learned matcher parallelises inside torch instead
-        default = cv2.getNumThreads() if self.config.matcher == "sgbm" else 1
+        default = cv2.getNumThreads() if self.config.matcher.name == "sgbm" else 1
         self.threads = max(1, default if threads is None else int(threads))
         self.matcher: Matcher = self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
@@ -259,18 +120,18 @@ class PriorBuilder:
 
     def _plan(self) -> None:
         """Rectified geometry, warp maps and backward maps of every pair."""
-        rig, cfg = self.rig, self.config
+        rig, geo = self.rig, self.config.geometry
         rays = {}
         for a, b in rig.pairs:
             cam_a, cam_b = rig.camera(a), rig.camera(b)
             src_a, src_b = cam_a, cam_b
-            if cfg.fisheye == "virtual":
+            if geo.fisheye == "virtual":
                 if cam_a.intrinsics.depth_is_range:
                     src_a = _facing_half(cam_a, cam_b)
                 if cam_b.intrinsics.depth_is_range:
                     src_b = _facing_half(cam_b, cam_a)
             pair = rectify_pair(
-                src_a, src_b, cfg.scale, cfg.min_depth, cfg.margin_px, cfg.max_azimuth_deg, cfg.max_elevation_deg
+                src_a, src_b, geo.scale, geo.min_depth, geo.margin_px, geo.max_azimuth_deg, geo.max_elevation_deg
             )
             if pair is None:
                 continue
@@ -314,7 +175,7 @@ class PriorBuilder:
         border) by their own camera, with a seen pixel of the other within the search range."""
         D = pair.max_disparity
         x0, x1 = pair.core_x
-        r = self.config.block_size // 2 + self.config.border_px
+        r = self.config.sgbm.block_size // 2 + self.config.filters.border_px
         k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
         vl = cv2.erode(valid_l.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
         vr = cv2.erode(valid_r.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
@@ -339,11 +200,11 @@ class PriorBuilder:
                 )
             if img.dtype != np.uint8:
                 raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
-            if not self.config.color and img.ndim == 3:
+            if not self.config.images.color and img.ndim == 3:
                 img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-            if self.config.antialias and self.config.scale < 1:
+            if self.config.images.antialias and self.config.geometry.scale < 1:
                 # the canvas samples the image about every 1/scale pixels: low-pass it first (no aliasing)
-                img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.scale**-2 - 1)))
+                img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.geometry.scale**-2 - 1)))
             out[name] = img
         return out
 
@@ -377,30 +238,30 @@ class PriorBuilder:
         disp_l, conf_l = dl[:, x0:], cl[:, x0:].copy()
         disp_r, conf_r = np.ascontiguousarray(dr_f[:, ::-1][:, :wc]), cr_f[:, ::-1][:, :wc].copy()
         # a match must start on a pixel its camera sees, away from the black border
-        r = cfg.block_size // 2 + cfg.border_px
+        r = cfg.sgbm.block_size // 2 + cfg.filters.border_px
         k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
         for conf, valid in ((conf_l, valid_l), (conf_r, valid_r)):
             inner = cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
             conf[inner[:, x0:x1] == 0] = 0
         lf, rf = grey_float(left), grey_float(right)
         lc, rc = lf[:, x0:x1], rf[:, x0:x1]
-        if cfg.refine_iterations > 0:
-            disp_l = refine_disparity(lc, rf, disp_l, conf_l > 0, -1, x0, cfg.refine_iterations)
-            disp_r = refine_disparity(rc, lf, disp_r, conf_r > 0, +1, x0, cfg.refine_iterations)
-        conf_l2 = lr_check(disp_l, conf_l, disp_r, conf_r, -1, cfg.lr_max_diff)
-        conf_r2 = lr_check(disp_r, conf_r, disp_l, conf_l, +1, cfg.lr_max_diff)
+        if cfg.filters.refine_iterations > 0:
+            disp_l = refine_disparity(lc, rf, disp_l, conf_l > 0, -1, x0, cfg.filters.refine_iterations)
+            disp_r = refine_disparity(rc, lf, disp_r, conf_r > 0, +1, x0, cfg.filters.refine_iterations)
+        conf_l2 = lr_check(disp_l, conf_l, disp_r, conf_r, -1, cfg.filters.lr_max_diff)
+        conf_r2 = lr_check(disp_r, conf_r, disp_l, conf_l, +1, cfg.filters.lr_max_diff)
         # photometric checks after the per-pixel shift catch consistent but wrong matches, e.g. of
         # points whose true match has left the other image
-        t, m = cfg.min_zncc, cfg.max_abs_diff
+        t, m = cfg.filters.min_zncc, cfg.filters.max_abs_diff
         for conf, a, b, disp, sign in ((conf_l2, lc, rf, disp_l, -1), (conf_r2, rc, lf, disp_r, +1)):
             ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
             conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
-            if cfg.min_texture > 0:  # rows without x-structure are ambiguous
-                conf *= np.clip(texture / cfg.min_texture - 1, 0, 1)
-            conf *= disp / (disp + cfg.confidence_disparity_px)  # small disparities give uncertain depth
-            if cfg.edge_jump_px > 0:
-                conf *= discontinuity_factor(disp, conf > 0, cfg.edge_jump_px)
-            remove_islands(disp, conf, cfg.min_region_px)  # isolated islands are mostly wrong matches
+            if cfg.filters.min_texture > 0:  # rows without x-structure are ambiguous
+                conf *= np.clip(texture / cfg.filters.min_texture - 1, 0, 1)
+            conf *= disp / (disp + cfg.confidence.disparity_px)  # small disparities give uncertain depth
+            if cfg.confidence.edge_jump_px > 0:
+                conf *= discontinuity_factor(disp, conf > 0, cfg.confidence.edge_jump_px)
+            remove_islands(disp, conf, cfg.filters.min_region_px)  # isolated islands are mostly wrong matches
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
     def _pair_values(
@@ -422,7 +283,7 @@ class PriorBuilder:
         t_match += t_ahead
         t0 = time.perf_counter()
         values = [
-            (side.camera, *side.back.values(disp, conf, cfg.min_depth, cfg.max_depth))
+            (side.camera, *side.back.values(disp, conf, cfg.geometry.min_depth, cfg.geometry.max_depth))
             for side, disp, conf in ((plan.left, disp_l, conf_l), (plan.right, disp_r, conf_r))
         ]
         return values, {"warp": t_warp, "match": t_match, "backproject": time.perf_counter() - t0}
@@ -463,13 +324,17 @@ class PriorBuilder:
         for values, _ in results:
             for camera, index, z, c in values:
                 fuse_into(out[camera].depth, out[camera].confidence, index, z, c)
+        conf_cfg = self.config.confidence
         for name, prior in out.items():
             mask = masks.get(name)
             if mask is not None:
                 prior.depth[~mask] = 0
                 prior.confidence[~mask] = 0
-            if self.config.min_confidence > 0:
-                unsure = prior.confidence < self.config.min_confidence
+            if conf_cfg.edge_depth_ratio > 0:  # occlusion edges of the fused map (pairs and sides together)
+                prior.confidence *= depth_edge_factor(prior.depth, conf_cfg.edge_depth_ratio, conf_cfg.edge_window_px)
+                prior.depth[prior.confidence <= 0] = 0
+            if conf_cfg.min_confidence > 0:
+                unsure = prior.confidence < conf_cfg.min_confidence
                 prior.depth[unsure] = 0
                 prior.confidence[unsure] = 0
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
@@ -488,9 +353,9 @@ class PriorBuilder:
         right = plan.right.warp(grey[plan.right.camera])
         valid_l = plan.left.canvas_valid(masks.get(plan.left.camera))
         valid_r = plan.right.canvas_valid(masks.get(plan.right.camera))
-        if cfg.normalize != "none":
-            left = normalize_image(left, valid_l, cfg.normalize, cfg.normalize_sigma)
-            right = normalize_image(right, valid_r, cfg.normalize, cfg.normalize_sigma)
+        if cfg.images.normalize != "none":
+            left = normalize_image(left, valid_l, cfg.images.normalize, cfg.images.normalize_sigma)
+            right = normalize_image(right, valid_r, cfg.images.normalize, cfg.images.normalize_sigma)
         return left, right, valid_l, valid_r
 
     def _match_batched(
@@ -520,7 +385,7 @@ class PriorBuilder:
         if not self.plans or any(m.confidence.any() for m in out.values()):
             return None
         counts = getattr(self.matcher, "counts", None)
-        name = self.config.matcher
+        name = self.config.matcher.name
         if counts and counts["finite"]:
             if counts["negative"] > 0.5 * counts["finite"]:
                 return (f"matcher {name} gave mostly negative disparities ({counts['negative'] / counts['finite']:.0%}"
@@ -530,4 +395,4 @@ class PriorBuilder:
         return f"no valid disparity on this frame (matcher {name}; every match failed the checks)"
 
 
-__all__ = ["PRIOR_ALGO_VERSION", "PairPlan", "PriorBuilder", "PriorConfig", "PriorMap"]
+__all__ = ["PRIOR_ALGO_VERSION", "PairPlan", "PriorBuilder", "PriorConfig", "PriorMap"]  # the config from .config
