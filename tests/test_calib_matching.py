@@ -129,7 +129,7 @@ def test_loftr_loads_weights_only_and_matches(tmp_path):
 
 def test_fisheye_overlap_view_maps_back_to_the_fisheye():
     from sgde_plugin.calib.views import overlap_view
-    from sgde_plugin.cameras import Camera, KannalaBrandt
+    from sgde_plugin.cameras import Camera, KannalaBrandt, Pinhole
     from sgde_plugin.geometry import camera_mount
 
     K = np.array([[40.0, 0, 79.5], [0, 40.0, 79.5], [0, 0, 1]])
@@ -149,6 +149,16 @@ def test_fisheye_overlap_view_maps_back_to_the_fisheye():
     assert ok.all() and view.valid[rows, cols].all()
     assert np.allclose(src_uv[:, 0], view.map_x[rows, cols], atol=1e-3)
     assert np.allclose(src_uv[:, 1], view.map_y[rows, cols], atol=1e-3)
+    # a pair of a wide and a narrow camera: the views share the coarser (default), the finer or the mean scale
+    narrow = Camera("N", Pinhole(160, 160, np.array([[160.0, 0, 79.5], [0, 160.0, 79.5], [0, 0, 1]])),
+                    camera_mount(-np.pi / 4, np.array([0.3, -0.3, 1.6])))
+    with torch_threads(1):
+        g = overlap_grid(front, narrow, np.eye(4)[None], margin_px=0.0)
+        f = {s: overlap_view(front, g, other=narrow, crop=True, pair_scale=s).camera.intrinsics.K[0, 0]
+             for s in ("min", "max", "mean")}
+        twice = overlap_view(front, g, other=narrow, crop=True, upsample=2.0).camera.intrinsics.K[0, 0]
+    assert 30.0 < f["min"] < 60.0 and np.isclose(f["max"], 160.0, rtol=0.02)
+    assert np.isclose(f["mean"], np.sqrt(f["min"] * f["max"])) and np.isclose(twice, 2 * f["min"])
 
 
 def test_keypoints_that_stay_at_one_pixel_are_marked_fixed():

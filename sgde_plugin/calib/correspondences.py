@@ -44,6 +44,7 @@ class MatchConfig:
     fisheye_views: bool = True
     pinhole_views: bool = True
     view_upsample: float = 1.0
+    view_pair_scale: str = "min"
     cross_time: bool = True
     seed: int = 0
 
@@ -293,7 +294,8 @@ def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str]
     views = {}
     for o in neighbours:
         view = (overlap_view(cam, grids[(name, o)], upsample=cfg.view_upsample) if fisheye else
-                overlap_view(cam, grids[(name, o)], other=cams[o], crop=True, upsample=cfg.view_upsample))
+                overlap_view(cam, grids[(name, o)], other=cams[o], crop=True, upsample=cfg.view_upsample,
+                             pair_scale=cfg.view_pair_scale))
         if view is not None:
             views[o] = view
     return views
