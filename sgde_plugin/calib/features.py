@@ -4,11 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+import torch
 
 from ..errors import InputError
+
+if TYPE_CHECKING:  # kornia's feature zoo loads only for LoFTR
+    from kornia.feature import LoFTR
 
 
 @dataclass
@@ -114,14 +119,13 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8
     return ia[mutual], ib[mutual]
 
 
-def load_loftr(weights: str | Path | None):
+def load_loftr(weights: str | Path | None) -> LoFTR:
     """A kornia LoFTR built without downloading, weights from a local checkpoint (torch.load weights_only).
 
     The file may hold a plain state dict or a Lightning-style {"state_dict": ...}. A missing path or a
     file that does not fit the model is an InputError.
     """
-    import torch
-    from kornia.feature import LoFTR
+    from kornia.feature import LoFTR  # kornia's feature zoo loads only for LoFTR
 
     if weights is None:
         raise InputError(None, "--loftr-weights", "LoFTR needs a local checkpoint path (nothing is downloaded)")
@@ -154,11 +158,10 @@ def _box_crop(gray: np.ndarray, box: tuple[int, int, int, int] | None) -> tuple[
 
 
 def loftr_match(
-    model, image_a: np.ndarray, image_b: np.ndarray, box_a=None, box_b=None, min_confidence: float = 0.5
+    model: LoFTR, image_a: np.ndarray, image_b: np.ndarray, box_a: tuple[int, int, int, int] | None = None,
+    box_b: tuple[int, int, int, int] | None = None, min_confidence: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
     """LoFTR matches between two images, optionally inside boxes (x0, y0, x1, y1): native pixels (N, 2) x 2."""
-    import torch
-
     ga, xa, ya = _box_crop(to_gray(image_a), box_a)
     gb, xb, yb = _box_crop(to_gray(image_b), box_b)
     if min(ga.shape) < 16 or min(gb.shape) < 16:

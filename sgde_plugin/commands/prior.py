@@ -3,8 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
+from ..errors import InputError
 from .options import integer, number
+
+if TYPE_CHECKING:  # the command loads the rig (and torch) only when it runs
+    from ..rig import Rig
 
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
@@ -90,7 +97,6 @@ def settings_from_args(args: argparse.Namespace) -> dict:
     """The prior settings given on the command line (None = not given)."""
     import yaml
 
-    from ..errors import InputError
 
     values = {name: getattr(args, name, None) for name, _, _ in SETTING_OPTIONS}
     if getattr(args, "matcher_options", None):
@@ -112,11 +118,8 @@ def _scene_from_location(location: str) -> str | None:
     return parts[-1] if parts else None
 
 
-def load_rig_with_override(location: str, rig_json: str | None):
+def load_rig_with_override(location: str, rig_json: str | None) -> Rig:
     """The rig of DIR (images checked), with the cameras and pairs of --rig when given."""
-    from dataclasses import replace
-
-    from ..errors import InputError
     from ..readers.detect import load_rig
     from ..rig import read_rig_json
 
@@ -135,10 +138,7 @@ def load_rig_with_override(location: str, rig_json: str | None):
 
 def run(args: argparse.Namespace) -> int:
     """Build (or resume) the cache and print one summary line."""
-    import sys
-
     from ..cache.build import StrictWarningError, build_cache, default_scene_name, default_workers, sanitize_scene_name
-    from ..errors import InputError
     from ..stereo.presets import load_prior_config
 
     config = load_prior_config(args.config, args.preset, settings_from_args(args))

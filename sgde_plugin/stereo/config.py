@@ -12,13 +12,16 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, Union
 
 from ..errors import InputError
 from .filters import NORMALIZATIONS
 from .matchers import Matcher, SGBMMatcher, load_learned_matcher, model_digests
 
 PRIOR_ALGO_VERSION = "1"
+# the value of one setting
+Setting = Union[str, int, float, bool, dict[str, Any], None]  # noqa: UP007 - a runtime alias on Python 3.10
 
 MATCHERS = ("sgbm", "raft-stereo", "torch", "onnx")
 LEARNED_MATCHERS = MATCHERS[1:]
@@ -142,7 +145,7 @@ def setting_type(name: str) -> str:
     return str({f.name: f for f in dataclasses.fields(GROUPS[group])}[leaf].type)
 
 
-def flatten_settings(values: Mapping[str, Any], source: Any = None) -> dict[str, Any]:
+def flatten_settings(values: Mapping[str, Any], source: str | Path | None = None) -> dict[str, Any]:
     """Flat and nested settings as one flat mapping: `{"sgbm": {"p1": 4}, "max_depth": 90}` ->
     `{"p1": 4, "max_depth": 90}`. A group's value is a mapping or a group dataclass; `matcher` may be a
     name (flat) or a mapping (the group). Unknown keys and a setting given twice are refused."""
@@ -194,7 +197,7 @@ class PriorConfig:
         self._check()
 
     @classmethod
-    def from_settings(cls, values: Mapping[str, Any] | None = None, /, **more: Any) -> PriorConfig:
+    def from_settings(cls, values: Mapping[str, Any] | None = None, /, **more: Setting) -> PriorConfig:
         """A config from flat setting names and/or group mappings (`values` and keywords together)."""
         flat = flatten_settings({**(values or {}), **more})
         groups: dict[str, dict[str, Any]] = {group: {} for group in GROUPS}
@@ -203,7 +206,7 @@ class PriorConfig:
             groups[group][leaf] = value
         return cls(**{group: GROUPS[group](**kwargs) for group, kwargs in groups.items()})
 
-    def _set(self, name: str, value: Any) -> None:
+    def _set(self, name: str, value: Setting) -> None:
         """Set one flat setting during construction (the groups are frozen)."""
         group, leaf = SETTINGS[name]
         object.__setattr__(self, group, dataclasses.replace(getattr(self, group), **{leaf: value}))
@@ -254,7 +257,7 @@ class PriorConfig:
         """True for a learned matcher (anything but SGBM)."""
         return self.matcher.learned
 
-    def get(self, name: str) -> Any:
+    def get(self, name: str) -> Setting:
         """The value of one flat setting, e.g. `config.get("block_size")`."""
         group, leaf = SETTINGS[name]
         return getattr(getattr(self, group), leaf)
@@ -268,7 +271,7 @@ class PriorConfig:
         """Every setting by group and field name (resolved values): the nested form of a `--config` file."""
         return {group: dataclasses.asdict(getattr(self, group)) for group in GROUPS}
 
-    def replace(self, **settings: Any) -> PriorConfig:
+    def replace(self, **settings: Setting) -> PriorConfig:
         """A copy with some settings changed (flat names or group mappings)."""
         return PriorConfig.from_settings({**self.settings(), **flatten_settings(settings)})
 

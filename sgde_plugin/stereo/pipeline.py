@@ -1,7 +1,8 @@
 """Depth prior of a whole rig frame (SGDE step 3): rectify every adjacent pair, match, back-project, fuse.
 
-`PriorBuilder(rig, config)` does all per-rig work once (rectified geometry, remap maps, backward
-maps); `.build(images, masks)` then turns one frame's images into one `PriorMap` per camera.
+`PriorBuilder(rig, config)` does all per-rig work once (`planning.plan_pairs`: rectified geometry,
+remap maps, backward maps); `.build(images, masks)` then turns one frame's images into one `PriorMap`
+per camera: prepare the images, match each pair (batched for a learned matcher), filter, back-project, fuse.
 """
 
 from __future__ import annotations
@@ -15,11 +16,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..cameras import Camera
 from ..errors import InputError
-from ..geometry import rotation_vector
 from ..rig import Frame, Rig
-from .backproject import BackProjection, backprojection, fuse_into
+from .backproject import fuse_into
 from .config import PRIOR_ALGO_VERSION, PriorConfig
 from .filters import (
     depth_edge_factor,
@@ -32,8 +31,8 @@ from .filters import (
     remove_islands,
 )
 from .matchers import Matcher
-from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair, torch_threads
-from .virtual import virtual_pinholes
+from .planning import PairPlan, plan_pairs, same_pose
+from .rectify import torch_threads
 
 
 @dataclass
@@ -54,51 +53,6 @@ class PriorMap:
         return cls(np.zeros((height, width), np.float32), np.zeros((height, width), np.float32))
 
 
-@dataclass(frozen=True, eq=False)
-class _Side:
-    """How one side's rectified image is made from an original camera's image."""
-
-    camera: str  # original camera name
-    pre: WarpMaps | None  # original fisheye -> virtual pinhole (fisheye="virtual" only)
-    rect: WarpMaps  # (virtual or original) source -> rectified canvas
-    valid: np.ndarray  # bool canvas: pixels the camera sees (through its virtual pinhole, if any)
-    back: BackProjection  # original camera -> rectified canvas (backward map)
-
-    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-        """Original image -> rectified canvas."""
-        if self.pre is not None:
-            image = self.pre.warp(image, interpolation)
-        return self.rect.warp(image, interpolation)
-
-    def canvas_valid(self, mask: np.ndarray | None) -> np.ndarray:
-        """Bool canvas mask: the camera sees the pixel and the ego mask (if any) allows it."""
-        if mask is None:
-            return self.valid
-        return self.valid & (self.warp(mask.astype(np.uint8), cv2.INTER_NEAREST) > 0)
-
-
-@dataclass(frozen=True, eq=False)
-class PairPlan:
-    """Everything precomputed for one adjacent pair."""
-
-    pair: RectifiedPair
-    left: _Side
-    right: _Side
-
-
-def _same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: float = 1e-3) -> bool:
-    """True if two rigid transforms differ by less than `rot_tol` radians and `trans_tol` metres."""
-    angle = np.linalg.norm(rotation_vector(a[:3, :3].T @ b[:3, :3]))
-    return bool(angle < rot_tol and np.linalg.norm(a[:3, 3] - b[:3, 3]) < trans_tol)
-
-
-def _facing_half(fisheye: Camera, other: Camera) -> Camera:
-    """The virtual pinhole half of `fisheye` that faces `other`."""
-    halves = virtual_pinholes(fisheye)
-    axis = other.sensor_to_ego[:3, 2]
-    return max(halves, key=lambda h: float(h.sensor_to_ego[:3, 2] @ axis))
-
-
 class PriorBuilder:
     """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
 
@@ -113,77 +67,17 @@ class PriorBuilder:
         self.matcher: Matcher = self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
         self.last_warning: str | None = None  # set by build() when the frame's prior came out empty
-        self.plans: list[PairPlan] = []
         self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
         with torch_threads(1):
-            self._plan()
-
-    def _plan(self) -> None:
-        """Rectified geometry, warp maps and backward maps of every pair."""
-        rig, geo = self.rig, self.config.geometry
-        rays = {}
-        for a, b in rig.pairs:
-            cam_a, cam_b = rig.camera(a), rig.camera(b)
-            src_a, src_b = cam_a, cam_b
-            if geo.fisheye == "virtual":
-                if cam_a.intrinsics.depth_is_range:
-                    src_a = _facing_half(cam_a, cam_b)
-                if cam_b.intrinsics.depth_is_range:
-                    src_b = _facing_half(cam_b, cam_a)
-            pair = rectify_pair(
-                src_a, src_b, geo.scale, geo.min_depth, geo.margin_px, geo.max_azimuth_deg, geo.max_elevation_deg
-            )
-            if pair is None:
-                continue
-            origs, pres, rects = [], [], []
-            for src, rect in ((pair.left, pair.rect_left), (pair.right, pair.rect_right)):
-                orig = cam_a if src is src_a else cam_b
-                origs.append(orig)
-                pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
-                rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
-            valid = [self._side_valid(p, r) for p, r in zip(pres, rects)]
-            possible = self._possible(pair, *valid)
-            sides = []
-            for orig, pre, warp, seen, rect, can in zip(
-                origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible
-            ):
-                if orig.name not in rays:
-                    rays[orig.name] = orig.intrinsics.ray_grid()
-                back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
-                sides.append(_Side(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back))
-            self.plans.append(PairPlan(pair, sides[0], sides[1]))
+            self.plans: list[PairPlan] = plan_pairs(rig, self.config)
 
     def _plan_for(self, rig: Rig) -> None:
         """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""
-        if all(_same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
+        if all(same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
             return
         self.rig = rig
-        self.plans = []
         with torch_threads(1):
-            self._plan()
-
-    @staticmethod
-    def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
-        """Canvas pixels a side's camera sees (through its virtual pinhole, if any)."""
-        valid = rect.valid.copy()
-        if pre is not None:
-            valid &= rect.warp(pre.valid.astype(np.uint8), cv2.INTER_NEAREST) > 0
-        return valid
-
-    def _possible(self, pair: RectifiedPair, valid_l: np.ndarray, valid_r: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Core pixels that can ever hold a left- / right-referenced disparity: seen (away from the
-        border) by their own camera, with a seen pixel of the other within the search range."""
-        D = pair.max_disparity
-        x0, x1 = pair.core_x
-        r = self.config.sgbm.block_size // 2 + self.config.filters.border_px
-        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-        vl = cv2.erode(valid_l.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        vr = cv2.erode(valid_r.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        row = np.ones((1, D), np.uint8)
-        # any right pixel in [x - D + 1, x] / any left pixel in [x, x + D - 1]
-        right_reach = cv2.dilate(vr, row, anchor=(D - 1, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        left_reach = cv2.dilate(vl, row, anchor=(0, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
+            self.plans = plan_pairs(rig, self.config)
 
     def _prepare(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Check sizes and convert to the matching colour space (grey unless `color`)."""
@@ -304,14 +198,7 @@ class PriorBuilder:
         t_start = time.perf_counter()
         if frame is not None:
             self._plan_for(self._base_rig.as_captured(frame))
-        masks = dict(self._static_masks) if masks is None else dict(masks)
-        masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
-        for name, m in masks.items():
-            if m is not None and name in self.rig.camera_names:
-                cam = self.rig.camera(name)
-                if m.shape != (cam.height, cam.width):
-                    raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
-                                     f"{cam.width}x{cam.height}")
+        masks = self._masks(masks)
         grey = self._prepare(images)
         batched = self._match_batched(grey, masks)
         if self.threads > 1 and len(self.plans) > 1:
@@ -320,8 +207,34 @@ class PriorBuilder:
         else:
             results = [self._pair_values(p, grey, masks, batched) for p in self.plans]
         t0 = time.perf_counter()
+        out = self._fuse([values for values, _ in results], masks)
+        timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
+        timings["fuse"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+        self.last_timings = timings
+        self.last_warning = self._empty_frame_warning(out)
+        return out
+
+    def _masks(self, masks: Mapping[str, np.ndarray | None] | None) -> dict[str, np.ndarray | None]:
+        """`build`, stage 1: the masks as bool (True = use; the rig's static masks by default), sizes checked."""
+        masks = dict(self._static_masks) if masks is None else dict(masks)
+        masks = {k: None if m is None else np.asarray(m) > 0 for k, m in masks.items()}  # any dtype, True = use
+        for name, m in masks.items():
+            if m is not None and name in self.rig.camera_names:
+                cam = self.rig.camera(name)
+                if m.shape != (cam.height, cam.width):
+                    raise InputError(None, f"masks[{name}]", f"is {m.shape[1]}x{m.shape[0]}, camera is "
+                                     f"{cam.width}x{cam.height}")
+        return masks
+
+    def _fuse(
+        self, pair_values: list[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]],
+        masks: Mapping[str, np.ndarray | None],
+    ) -> dict[str, PriorMap]:
+        """`build`, last stage: every pair's values fused into each camera's map in pair order, then the
+        masks, the occlusion-edge factor and the confidence threshold applied."""
         out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
-        for values, _ in results:
+        for values in pair_values:
             for camera, index, z, c in values:
                 fuse_into(out[camera].depth, out[camera].confidence, index, z, c)
         conf_cfg = self.config.confidence
@@ -337,11 +250,6 @@ class PriorBuilder:
                 unsure = prior.confidence < conf_cfg.min_confidence
                 prior.depth[unsure] = 0
                 prior.confidence[unsure] = 0
-        timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
-        timings["fuse"] = time.perf_counter() - t0
-        timings["total"] = time.perf_counter() - t_start
-        self.last_timings = timings
-        self.last_warning = self._empty_frame_warning(out)
         return out
 
     def _canvases(

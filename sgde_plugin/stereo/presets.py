@@ -15,7 +15,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from ..errors import InputError
+from ..io import atomic_write_text
 from .config import GROUPS, MATCHER_DEFAULTS, SETTINGS, PriorConfig, flatten_settings, setting_type
 
 # Per-data-set settings over the field defaults (which are the synthetic world's, where they were tuned).
@@ -46,7 +49,7 @@ def _kind(annotation: str) -> tuple[str, bool]:
     return ("dict" if base.startswith("dict") else base), nullable
 
 
-def _check_value(name: str, value: Any, source: str | Path | None) -> Any:
+def _check_value(name: str, value: object, source: str | Path | None) -> object:
     """`value` for setting `name`, type-checked (ints accepted for floats); one-line InputError otherwise."""
     base, nullable = _kind(setting_type(name))
     if value is None:
@@ -88,8 +91,6 @@ def preset_settings(name: str, source: str | Path | None = None) -> dict[str, An
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """A YAML settings file as a checked mapping (its `preset` key, if any, kept)."""
-    import yaml
-
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -137,10 +138,6 @@ def load_prior_config(
 
 def save_prior_config(config: PriorConfig, path: str | Path) -> Path:
     """Write every setting of `config` as YAML (atomically); reading it back gives the same config."""
-    import yaml
-
-    from ..io import atomic_write_text
-
     settings = config.nested()
     plain = PriorConfig.from_settings(matcher=config.matcher.name, matcher_path=config.matcher.path)
     for name in MATCHER_DEPENDENT:  # null = "the matcher's default", so a file stays right when the matcher changes
