@@ -108,6 +108,8 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
         row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
                                                 if p["status"] == "through ring"],
+                               "rotation_sigma_deg": [p["rotation_sigma_deg"] for p in w["pairs"]],
+                               "rotation_deg": [r["rotation_deg"] for r in relative_pose_errors(out, seq.rig_true)],
                                **_pose_errors(out, seq.rig_true)}
     row["input"] = _pose_errors(seq.rig, seq.rig_true)
     if peer == "colmap":

@@ -19,25 +19,48 @@ if TYPE_CHECKING:  # kornia's feature zoo loads only for LoFTR
 @dataclass
 class Keypoints:
     """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels,
-    and each keypoint's index in its image's full list (kept through `subset`)."""
+    each keypoint's index in its image's full list (kept through `subset`), and `fixed`: True where the
+    same keypoint sits at the same pixel in another frame of the camera (see `mark_fixed`)."""
 
     uv: np.ndarray
     desc: np.ndarray
     size: np.ndarray | None = None
     index: np.ndarray | None = None
+    fixed: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.size is None:
             self.size = np.ones(self.uv.shape[0])
         if self.index is None:
             self.index = np.arange(self.uv.shape[0])
+        if self.fixed is None:
+            self.fixed = np.zeros(self.uv.shape[0], dtype=bool)
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
 
     def subset(self, keep: np.ndarray) -> Keypoints:
         """The keypoints selected by a boolean mask or index array."""
-        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep])
+        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep], self.fixed[keep])
+
+
+def mark_fixed(frames: list[Keypoints], radius_px: float = 1.0, min_cosine: float = 0.9) -> None:
+    """Set `fixed` on the keypoints of one camera's frames that recur at the same pixel (within `radius_px`,
+    descriptor cosine >= `min_cosine`) in another frame: texture that moves with the car (a near object
+    driving along, the ego body) or lies at infinity. Across time such a match looks like a static point at
+    a wrong depth, so cross-time matching leaves them out."""
+    from scipy.spatial import cKDTree
+
+    trees = [cKDTree(k.uv) if len(k) else None for k in frames]
+    for i, k in enumerate(frames):
+        for j, tree in enumerate(trees):
+            if j == i or tree is None or not len(k):
+                continue
+            for a, near in enumerate(tree.query_ball_point(k.uv, radius_px)):
+                if near and not k.fixed[a]:
+                    d = frames[j].desc[near]
+                    cos = d @ k.desc[a] / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(k.desc[a]), 1e-12)
+                    k.fixed[a] = bool(cos.max() >= min_cosine)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
