@@ -193,7 +193,8 @@ def test_sift_keypoints_sit_at_the_blob_centres():
         err = []
         for _ in range(6):
             img = np.full((160, 160), 128.0)
-            centres = [(25 + 55 * (i % 3) + rng.uniform(-3, 3), 25 + 55 * (i // 3) + rng.uniform(-3, 3)) for i in range(9)]
+            jitter = rng.uniform(-3, 3, (9, 2))
+            centres = [(25 + 55 * (i % 3) + jitter[i, 0], 25 + 55 * (i // 3) + jitter[i, 1]) for i in range(9)]
             for cx, cy in centres:
                 img += 100 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * rng.uniform(3.0, 5.0) ** 2))
             kp = sift_features(np.clip(img, 0, 255).astype(np.uint8), scale=scale)
