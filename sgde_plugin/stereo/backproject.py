@@ -48,6 +48,14 @@ class BackProjection:
         disparities differ by more than `edge_px`, get a large negative sentinel; a bilinear sample
         that touches one comes out negative and is dropped. One remap does the whole job.
         """
+        dd, cc = self._remap(disparity, confidence, edge_px)
+        valid = dd > 0
+        return dd, np.where(valid, cc, 0).astype(np.float32), valid
+
+    def _remap(
+        self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 1.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`sample`'s raw bilinear disparity (negative = no value) and confidence at the covered pixels."""
         n = self.count
         d = np.where(confidence > 0, disparity, _SENTINEL).astype(np.float32)
         ok = confidence > 0
@@ -62,19 +70,19 @@ class BackProjection:
         stack = cv2.merge([d, confidence.astype(np.float32)])
         out = cv2.remap(stack, self.map1, self.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                         borderValue=(_SENTINEL, 0.0, 0.0, 0.0))
-        dd = out[..., 0].reshape(-1)[:n]
-        cc = out[..., 1].reshape(-1)[:n]
-        valid = dd > 0
-        return dd, np.where(valid, cc, 0).astype(np.float32), valid
+        flat = out.reshape(-1, 2)[:n]
+        return flat[:, 0], flat[:, 1]
 
     def values(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flat pixel indices, depth in the camera's convention, confidence) of the pixels that got a value."""
-        d, c, ok = self.sample(disparity, confidence)
-        z = np.where(ok, self.kfb / np.where(ok, d, 1), 0)
-        ok &= (z >= min_depth) & (z <= max_depth)
-        return self.index[ok], z[ok].astype(np.float32), c[ok]
+        d, c = self._remap(disparity, confidence)
+        sel = np.flatnonzero(d > 0)  # only the pixels that got a sample: divide and test those alone
+        z = self.kfb[sel] / d[sel]
+        keep = (z >= min_depth) & (z <= max_depth)
+        sel = sel[keep]
+        return self.index[sel], z[keep], c[sel]
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
