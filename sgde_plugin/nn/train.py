@@ -45,11 +45,12 @@ SUPERVISED_ARMS = (
     Arm("+ input", True, None),
     Arm("+ input & L1", True, DEFAULT_WEIGHT),
 )
+SELF_PRIOR_LOSS, SELF_PRIOR_WEIGHT = "log_l1", 0.05 # the self-supervised arms' prior loss (see `prior_term`)
 SELF_SUPERVISED_ARMS = (
     Arm("baseline", False, None),
     Arm("+ input", True, None),
-    Arm("+ L1", False, DEFAULT_WEIGHT),
-    Arm("+ input & L1", True, DEFAULT_WEIGHT),
+    Arm("+ L1", False, SELF_PRIOR_WEIGHT, SELF_PRIOR_LOSS),
+    Arm("+ input & L1", True, SELF_PRIOR_WEIGHT, SELF_PRIOR_LOSS),
 )
 
 
@@ -169,6 +170,20 @@ class Schedule:
         """Learning-rate multiplier at ``step`` (0-based) of ``steps``."""
         warm = min(1.0, (step + 1) / self.warmup) if self.warmup else 1.0
         return warm * (0.2 if step >= int(steps * 0.75) else 1.0)
+
+
+SELF_SCHEDULE = Schedule(lr=1e-3, warmup=20, clip=1.0)  # the self-supervised recipe, every arm alike
+SELF_INITIAL_DEPTH_M = 10.0  # self-supervised nets start predicting this depth everywhere
+
+
+def start_at_depth(net: DepthNet, depth_m: float) -> None:
+    """Set the depth heads' biases so that a zero input to them gives ``depth_m`` (a view-synthesis loss
+    only sees matches a few pixels from the current depth: a random net's start, 1 / (mean of the
+    disparity range), is too near)."""
+    sig = (1.0 / depth_m - 1.0 / net.max_depth) / (1.0 / net.min_depth - 1.0 / net.max_depth)
+    with torch.no_grad():
+        for head in net.decoder.heads.values():
+            head.bias.fill_(math.log(sig / (1.0 - sig)))
 
 
 def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: int, seed: int,
