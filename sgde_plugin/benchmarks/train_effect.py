@@ -18,7 +18,10 @@ table instead (baseline, + input, + L1, + input & L1) with view synthesis (`sgde
 each camera's depth is scored by warping the same camera at t -/+ ``context_s`` (poses from the ego
 trajectory) and its two adjacent cameras of the same capture (metric scale) into it; a LiDAR-supervised
 baseline from the same initial weights is trained alongside as the reference for "a working
-self-supervised baseline". Abs Rel is reported without and with per-image median scaling.
+self-supervised baseline". Every arm and the reference follow `nn.train.SELF_SCHEDULE` (Adam lr 1e-3,
+20 warm-up steps, gradient norm clipped to 1) from depth heads set to 10 m; the L1 arms add
+0.05 * |log D - log D_p| (`nn.train.SELF_PRIOR_WEIGHT`). Abs Rel is reported without and with per-image
+median scaling.
 The training loop itself lives in `sgde_plugin.nn.train`.
 
 Data enter through one function, `load_sequence`, returning a `RigSequence` (images, ground

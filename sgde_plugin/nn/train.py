@@ -45,7 +45,7 @@ SUPERVISED_ARMS = (
     Arm("+ input", True, None),
     Arm("+ input & L1", True, DEFAULT_WEIGHT),
 )
-SELF_PRIOR_LOSS, SELF_PRIOR_WEIGHT = "log_l1", 0.05 # the self-supervised arms' prior loss (see `prior_term`)
+SELF_PRIOR_LOSS, SELF_PRIOR_WEIGHT = "log_l1", 0.05  # the self-supervised arms' prior loss (see `prior_term`)
 SELF_SUPERVISED_ARMS = (
     Arm("baseline", False, None),
     Arm("+ input", True, None),
