@@ -17,6 +17,7 @@ inside ``mats_dict[PRIOR_KEY]`` ([B, num_sweeps, N, H, W]), so it rides through 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from contextlib import AbstractContextManager
 from typing import Any
 
 import torch
@@ -262,7 +263,7 @@ class PriorInjector(nn.Module):
                                            hidden_channels=hidden_channels, zero_init=True)
         self.feed = PriorFeed()
 
-    def given(self, prior: Tensor | None) -> Any:
+    def given(self, prior: Tensor | None) -> AbstractContextManager[PriorFeed]:
         """Context manager: within it, the k-th call of the net gets frame k of ``prior`` ([B, S, N, H, W])."""
         return self.feed.given(prior)
 

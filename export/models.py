@@ -33,7 +33,12 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from sgde_plugin import __version__
+from sgde_plugin.adapters import PriorDepthNet
+from sgde_plugin.adapters.bevdepth import _depth_net_part
 from sgde_plugin.errors import InputError
+from sgde_plugin.geometry import camera_mount
+from sgde_plugin.nn import DepthNet
 
 R18_INPUTS = ("image", "prior")
 R18_OUTPUTS = ("depth",)
@@ -225,8 +230,6 @@ def nuscenes_like_mats(batch: int, cams: int, image_size: tuple[int, int], sweep
     ``intrin_mats``, ``ida_mats``, ``sensor2ego_mats`` [B, sweeps, N, 4, 4] (every sweep alike) and
     ``bda_mat`` [B, 4, 4].
     """
-    from sgde_plugin.geometry import camera_mount
-
     h, w = image_size
     yaws = NUSCENES_YAWS_DEG if cams == len(NUSCENES_YAWS_DEG) else [360.0 * i / cams for i in range(cams)]
     K = torch.eye(4)
@@ -248,8 +251,6 @@ def nuscenes_like_mats(batch: int, cams: int, image_size: tuple[int, int], sweep
 
 
 def _common_metadata(name: str, module: nn.Module, info: dict[str, Any]) -> dict[str, str]:
-    from sgde_plugin import __version__
-
     fingerprint = info.get("fingerprint") or info.get("training_fingerprint") or "none (untrained weights)"
     return {
         "sgde.model": name,
@@ -261,8 +262,6 @@ def _common_metadata(name: str, module: nn.Module, info: dict[str, Any]) -> dict
 
 def build_r18(checkpoint: str | Path | None = None, image_size: tuple[int, int] = R18_DEFAULT_SIZE) -> ExportSpec:
     """The R18 reference depth net (``sgde_plugin.nn.DepthNet``) ready for export."""
-    from sgde_plugin.nn import DepthNet
-
     state, info = load_checkpoint(checkpoint) if checkpoint is not None else (None, {})
     config = dict(info.get("config", {}))
     config.setdefault("use_prior", True)
@@ -325,11 +324,8 @@ def _config_from_state(state: dict[str, Tensor] | None) -> dict[str, Any]:
     return config
 
 
-def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> tuple[Any, dict[str, Any]]:
+def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> tuple[PriorDepthNet, dict[str, Any]]:
     """`build_bevdepth`, network: the PriorDepthNet (config from checkpoint and overrides, weights loaded), eval."""
-    from sgde_plugin.adapters import PriorDepthNet
-    from sgde_plugin.adapters.bevdepth import _depth_net_part
-
     state, info = load_checkpoint(checkpoint) if checkpoint is not None else (None, {})
     if state is not None:
         state = dict(_depth_net_part(state))
@@ -347,7 +343,9 @@ def _bevdepth_net(checkpoint: str | Path | None, overrides: dict[str, Any]) -> t
     return net.eval(), info
 
 
-def _bevdepth_metadata(net: Any, info: dict[str, Any], cams: int, image_size: tuple[int, int]) -> dict[str, str]:
+def _bevdepth_metadata(
+    net: PriorDepthNet, info: dict[str, Any], cams: int, image_size: tuple[int, int]
+) -> dict[str, str]:
     """`build_bevdepth`, metadata: the ONNX metadata (inputs, outputs, layout, depth bins, prior encoding)."""
     h, w = image_size
     s = net.downsample

@@ -40,7 +40,7 @@ def _deform_conv_symbolic(g, input, weight, offset, mask, bias, stride_h, stride
     """torchvision::deform_conv2d -> ONNX DeformConv (opset 19); offsets (dy, dx) per kernel point in both."""
     from torch.onnx import symbolic_helper as sh
 
-    def const(v, name: str) -> int:  # noqa: ANN001
+    def const(v: torch.Value, name: str) -> int:
         return int(sh._get_const(v, "i", name))
 
     if sh._maybe_get_const(use_mask, "b"):

@@ -12,10 +12,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor, nn
+
+if TYPE_CHECKING:  # onnxruntime loads only when a session is made
+    import onnxruntime as ort
 
 FP32_TOLERANCE = (1e-4, 1e-3)  # (atol as a fraction of the output range, rtol)
 FP16_TOLERANCE = (1e-2, 1e-2)
@@ -57,7 +61,7 @@ class ParityError(RuntimeError):
         super().__init__("ONNX output differs from torch beyond tolerance:\n" + "\n".join(r.line() for r in bad))
 
 
-def onnx_session(path: str | Path, threads: int | None = None):  # noqa: ANN201 - onnxruntime type
+def onnx_session(path: str | Path, threads: int | None = None) -> ort.InferenceSession:
     """A CPU onnxruntime session for ``path``."""
     import onnxruntime as ort
 
@@ -67,7 +71,7 @@ def onnx_session(path: str | Path, threads: int | None = None):  # noqa: ANN201 
     return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
 
 
-def run_onnx(session, names: Sequence[str], inputs: Sequence[Tensor]) -> list[np.ndarray]:  # noqa: ANN001
+def run_onnx(session: ort.InferenceSession, names: Sequence[str], inputs: Sequence[Tensor]) -> list[np.ndarray]:
     """Run a session on torch inputs (fed by name, in order) -> numpy outputs."""
     return session.run(None, {n: x.detach().cpu().numpy() for n, x in zip(names, inputs)})
 

@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from sgde_plugin.io import atomic_path
@@ -38,8 +39,6 @@ def parity_cases(spec: ExportSpec, batches: tuple[int, ...] = CHECK_BATCHES) -> 
 
 def _random_image_and_prior(batch: int, size: tuple[int, int]) -> list[Tensor]:
     """Seeded random RGB in [0, 1] and a 30 %-dense prior (1-61 m) at ``size``."""
-    import torch
-
     g = torch.Generator().manual_seed(7)
     h, w = size
     image = torch.rand(batch, 3, h, w, generator=g)

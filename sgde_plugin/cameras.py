@@ -9,6 +9,7 @@ an image covers [-0.5, W - 0.5] x [-0.5, H - 0.5]. Checking `rig.json` fields: `
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -60,6 +61,11 @@ def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64, devi
         indexing="ij",
     )
     return torch.stack([u, v], dim=-1)
+
+
+def _float_list(values: np.ndarray | Sequence[float]) -> list:
+    """An array as nested lists of Python floats (as `rig.json` holds it)."""
+    return np.asarray(values, dtype=np.float64).tolist()
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +140,10 @@ class CameraModel:
     # --- description ------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """The `rig.json` fields of this model (without name and pose)."""
+        return {"model": self.model, "width": self.width, "height": self.height, **self._parameters()}
+
+    def _parameters(self) -> dict[str, Any]:
+        """The model's own `rig.json` fields (after model, width and height)."""
         raise NotImplementedError
 
     def resized(self, width: int, height: int) -> CameraModel:
@@ -232,14 +242,8 @@ class Pinhole(CameraModel):
         rays, _ = self.unproject(np.array([[-0.5, self.K[1, 2]], [self.width - 0.5, self.K[1, 2]]]))
         return float(np.degrees(np.arctan2(-rays[0, 0], rays[0, 2]) + np.arctan2(rays[1, 0], rays[1, 2])))
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "model": self.model,
-            "width": self.width,
-            "height": self.height,
-            "K": np.asarray(self.K, dtype=np.float64).tolist(),
-            "dist": None if self.dist is None else np.asarray(self.dist, dtype=np.float64).tolist(),
-        }
+    def _parameters(self) -> dict[str, Any]:
+        return {"K": _float_list(self.K), "dist": None if self.dist is None else _float_list(self.dist)}
 
     def resized(self, width: int, height: int) -> Pinhole:
         return Pinhole(width, height, _resize_K(self.K, width / self.width, height / self.height), self.dist)
@@ -291,15 +295,8 @@ class KannalaBrandt(CameraModel):
         valid = converged & (theta <= math.radians(self.fov_deg) / 2 + 1e-9) & self.in_image(uv)
         return rays, valid
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "model": self.model,
-            "width": self.width,
-            "height": self.height,
-            "K": np.asarray(self.K, dtype=np.float64).tolist(),
-            "dist": np.asarray(self.dist, dtype=np.float64).tolist(),
-            "fov_deg": float(self.fov_deg),
-        }
+    def _parameters(self) -> dict[str, Any]:
+        return {"K": _float_list(self.K), "dist": _float_list(self.dist), "fov_deg": float(self.fov_deg)}
 
     def resized(self, width: int, height: int) -> KannalaBrandt:
         K = _resize_K(self.K, width / self.width, height / self.height)
@@ -368,17 +365,9 @@ class Ocam(CameraModel):
         valid = (angle <= math.radians(self.fov_deg) / 2 + 1e-9) & self.in_image(uv)
         return ray, valid
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "model": self.model,
-            "width": self.width,
-            "height": self.height,
-            "poly": np.asarray(self.poly, dtype=np.float64).tolist(),
-            "inv_poly": np.asarray(self.inv_poly, dtype=np.float64).tolist(),
-            "center": np.asarray(self.center, dtype=np.float64).tolist(),
-            "affine": np.asarray(self.affine, dtype=np.float64).tolist(),
-            "fov_deg": float(self.fov_deg),
-        }
+    def _parameters(self) -> dict[str, Any]:
+        arrays = {name: _float_list(getattr(self, name)) for name in ("poly", "inv_poly", "center", "affine")}
+        return {**arrays, "fov_deg": float(self.fov_deg)}
 
     def resized(self, width: int, height: int) -> Ocam:
         s = width / self.width

@@ -11,32 +11,43 @@ import json
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+import torch
 
-from .io import atomic_write_text
-from .rig import Rig, attach_files, read_rig_folder, read_rig_json
+from .cache import PriorCache
+from .cache.build import build_cache
+from .cache.resample import resize_depth, resize_matrix, warp_image
+from .calib import calibrate
+from .demo_settings import DemoSettings
+from .export.models import build_r18
+from .export.workflow import export_spec
+from .figures import CameraPanel, save_bev_points, save_prior_panels
+from .io import atomic_path, atomic_write_text
+from .nn import DepthNet
+from .nn.sequence import RigSequence, lidar_pattern, overlap_masks
+from .nn.train import (
+    SELF_INITIAL_DEPTH_M,
+    SELF_PRIOR_LOSS,
+    SELF_PRIOR_WEIGHT,
+    SELF_SCHEDULE,
+    SelfSupervision,
+    evaluate,
+    start_at_depth,
+    train_arm,
+)
+from .pairs import relative_pose_errors
+from .rig import Rig, attach_files, read_rig_folder, read_rig_json, write_rig_json
+from .stereo.config import PriorConfig
+from .stereo.evaluate import evaluate_priors, report_rows
+from .synth.sequence import write_synth
 from .tables import format_table, markdown_table
 
 METRIC_COLUMNS = ["abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "coverage"]
 
-
-@dataclass(frozen=True)
-class DemoSettings:
-    """Sizes and budgets of the demo (defaults fit in about five minutes on two cores)."""
-
-    preset: str = "nuscenes"
-    frames: int = 7
-    scale: float = 0.5
-    seed: int = 0
-    net_size: tuple[int, int] = (96, 160)
-    train_steps: int = 300
-    self_size: tuple[int, int] = (48, 80)  # the self-supervised arm: `sgde bench train-effect --supervision self`
-    self_steps: int = 150
-    methods: tuple[str, ...] = ("none", "glc")
+T = TypeVar("T")
 
 
 class Stopwatch:
@@ -46,7 +57,7 @@ class Stopwatch:
         self.log = log
         self.stages: dict[str, float] = {}
 
-    def run(self, name: str, fn: Callable[[], Any]) -> Any:
+    def run(self, name: str, fn: Callable[[], T]) -> T:
         """Run one stage, record and log its duration."""
         t0 = time.perf_counter()
         self.log(f"[{name}] ...")
@@ -62,27 +73,16 @@ def _true_rig(rig: Rig, root: Path) -> Rig:
 
 
 def _evaluate(rig_true: Rig, cache_path: Path) -> dict[str, Any]:
-    from .cache import PriorCache
-    from .stereo.evaluate import evaluate_priors
-
     cache = PriorCache(cache_path)
     return evaluate_priors(rig_true, lambda f, c: cache.get(f, c)[0], rig_true.load_depth)
 
 
 def _overall(report: dict[str, Any]) -> dict[str, Any]:
-    from .stereo.evaluate import report_rows
-
     return report_rows(report)[2][0]
 
 
 def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
     """RigSequence at network size from the demo's own frames, its ground truth and its cached priors."""
-    import torch
-
-    from .cache import PriorCache
-    from .cache.resample import resize_depth, resize_matrix, warp_image
-    from .nn.sequence import RigSequence, lidar_pattern, overlap_masks
-
     h, w = size
     cache = PriorCache(cache_path)
     cams = [c.resized(w, h) for c in rig_true.cameras]
@@ -112,8 +112,6 @@ def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
 def _add_temporal_context(seq, rig_true: Rig, size: tuple[int, int]) -> None:
     """What self-supervision needs: each camera's pose at its capture, the previous and next frames as
     temporal sources (frames 1..F-2), the static masks at network size."""
-    from .cache.resample import resize_depth
-
     frames, names = rig_true.frames, rig_true.camera_names
     seq.camera_to_world = np.stack([np.stack([rig_true.capture(fr, c).camera_to_world for c in names])
                                     for fr in frames])
@@ -136,11 +134,6 @@ def _train_and_test(seq, steps: int, out: Path, self_seq=None, self_steps: int =
     With ``self_seq`` (the same frames at the self-supervised recipe's smaller size) a prior net (input & L1)
     is also trained self-supervised, `sgde bench train-effect --supervision self`'s recipe, on the frames
     whose neighbours are not the test frame, and tested on the last frame."""
-    import torch
-
-    from .nn import DepthNet
-    from .nn.train import SELF_PRIOR_LOSS, SELF_PRIOR_WEIGHT, SELF_SCHEDULE, SelfSupervision, evaluate, train_arm
-
     frames = list(range(seq.images.shape[0]))
     train, test = frames[:-1], frames[-1:]
     rows = []
@@ -157,13 +150,11 @@ def _train_and_test(seq, steps: int, out: Path, self_seq=None, self_steps: int =
         seconds = train_arm(net, seq, train, steps, seed=0, prior_weight=weight, lr=4e-4)
         rows.append(_network_row(label, evaluate(net, seq, test), seconds))
         if net is arms[1][1]:
-            from .io import atomic_path
-
             with atomic_path(ckpt) as tmp:
                 torch.save({"state_dict": net.state_dict(), "config": config}, tmp)
     if self_seq is not None and self_steps:
-        net = _self_supervised_net()
         torch.manual_seed(0)
+        net = _self_supervised_net()
         # targets need both temporal neighbours, and neither may be the test frame (3 frames: use frame 1)
         seconds = train_arm(net, self_seq, frames[1:-2] or frames[1:-1], self_steps, seed=0,
                             prior_weight=SELF_PRIOR_WEIGHT, self_supervision=SelfSupervision(self_seq),
@@ -174,11 +165,8 @@ def _train_and_test(seq, steps: int, out: Path, self_seq=None, self_steps: int =
     return rows, ckpt
 
 
-def _self_supervised_net():
+def _self_supervised_net() -> DepthNet:
     """The self-supervised recipe's prior net (input & L1, validity channel; depth 0.5-100 m starting at 10 m)."""
-    from .nn import DepthNet
-    from .nn.train import SELF_INITIAL_DEPTH_M, start_at_depth
-
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0)
     start_at_depth(init, SELF_INITIAL_DEPTH_M)
     return DepthNet.with_prior_from(init, validity=True, prior_max_depth=80.0)
@@ -190,9 +178,6 @@ def _network_row(label: str, res: dict, seconds: float) -> dict:
 
 
 def _export(ckpt: Path, out: Path, size: tuple[int, int]) -> dict[str, Any]:
-    from .export.models import build_r18
-    from .export.workflow import export_spec
-
     spec = build_r18(ckpt, image_size=size)
     report = export_spec(spec, out / "depth_r18_prior.onnx", check=True)
     worst = max(r.max_abs_diff for r in report["parity"])
@@ -200,15 +185,8 @@ def _export(ckpt: Path, out: Path, size: tuple[int, int]) -> dict[str, Any]:
             "max_abs_diff": worst}
 
 
-def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Callable[[str], None] = print) -> dict:
+def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Callable[[str], None] = print) -> dict:  # noqa: B008
     """Run the whole demo into `out`; returns the summary (also written as summary.json and report.md)."""
-    from .cache.build import build_cache
-    from .calib import calibrate
-    from .figures import CameraPanel, save_bev_points, save_prior_panels
-    from .rig import write_rig_json
-    from .stereo.pipeline import PriorConfig
-    from .synth.sequence import write_synth
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     clock = Stopwatch(log)
@@ -272,8 +250,6 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Call
 
 
 def _calibration_row(method: str, refined: Rig, rig_true: Rig, report: dict) -> dict:
-    from .pairs import relative_pose_errors
-
     err = relative_pose_errors(refined, rig_true)
     rot = [e["rotation_deg"] for e in err]
     trans = [e["translation_m"] for e in err]
@@ -288,8 +264,6 @@ def _calibration_row(method: str, refined: Rig, rig_true: Rig, report: dict) -> 
 
 def _figures(out: Path, rig_true: Rig, rigs: dict[str, Rig], caches: dict[str, Path], best: str,
              save_prior_panels, save_bev_points, CameraPanel) -> None:  # noqa: N803 - a class passed in
-    from .cache import PriorCache
-
     frame = rig_true.frames[len(rig_true.frames) // 2].id
     cache = PriorCache(caches[best])
     panels = [CameraPanel(c, rig_true.load_image(frame, c), cache.get(frame, c)[0], rig_true.load_depth(frame, c))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from .errors import InputError
 
@@ -142,8 +143,6 @@ def read_image(path: str | Path) -> np.ndarray:
 def decode_check(path: str | Path) -> None:
     """Decode an image file completely (not only its header); InputError naming the file when it is
     truncated or corrupted. Uses Pillow, which reports problems as exceptions, not on stderr."""
-    from PIL import Image
-
     data = _read_file(path)
     check_complete(data, path)
     try:

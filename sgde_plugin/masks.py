@@ -18,10 +18,14 @@ Three frames suffice when the car moves between them; more frames make the stati
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
+
+from .errors import InputError
+from .rig import Rig
 
 WORK_WIDTH = 384  # estimation runs at about this width; the mask is scaled back up
 
@@ -132,16 +136,11 @@ def spread_frames(n_frames: int, count: int) -> list[int]:
     return sorted({round(i * (n_frames - 1) / (count - 1)) for i in range(count)})
 
 
-def attach_masks(rig, folder):  # noqa: ANN001, ANN201 - Rig in, Rig out (kept free of a rig import cycle)
+def attach_masks(rig: Rig, folder: str | Path) -> Rig:
     """The rig with `folder/<camera>.png` as static masks for every camera that has no mask of its own.
 
     Masks already on the rig (the user's, from the rig folder's masks/) take precedence.
     """
-    from dataclasses import replace
-    from pathlib import Path
-
-    from .errors import InputError
-
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(folder, None, "mask folder not found")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from .cameras import Camera
@@ -21,8 +22,6 @@ SKY_INV_DEPTH = 1e-3  # inverse depth below this (beyond 1 km) is sky, as in Omn
 
 def read_inverse_depth_tiff(path: str | Path) -> np.ndarray:
     """The float32 page of an OmniMVS ground-truth TIFF (inverse depth, 1/m), shape (H, W)."""
-    import cv2
-
     ok, pages = cv2.imreadmulti(str(path), flags=cv2.IMREAD_UNCHANGED)
     if not ok:
         raise InputError(path, None, "cannot read TIFF")

@@ -200,7 +200,7 @@ class Rig:
         cams = tuple(c.with_pose(sensor_to_ego[c.name]) if c.name in sensor_to_ego else c for c in self.cameras)
         return replace(self, cameras=cams)
 
-    def with_extra(self, **extra: Any) -> Rig:
+    def with_extra(self, **extra: object) -> Rig:
         """The same rig with top-level keys added to `rig.json` (e.g. a calibration block)."""
         return replace(self, extra={**dict(self.extra), **extra})
 
@@ -241,7 +241,7 @@ def ring_subset_pairs(ring: tuple[str, ...] | list[str], present: tuple[str, ...
     return tuple(p for p in ring_pairs(ring) if p[0] in keep and p[1] in keep)
 
 
-def _captures(doc: Any, where: str, names: set[str]) -> dict[str, CameraCapture]:
+def _captures(doc: object, where: str, names: set[str]) -> dict[str, CameraCapture]:
     """Parse `frames[].cameras` (camera -> {timestamp_us, ego_to_world}); every key optional."""
     if not isinstance(doc, dict):
         raise InputError(None, where, "not an object mapping camera names to captures")
@@ -284,7 +284,7 @@ def _cameras_from_doc(doc: dict) -> tuple[Camera, ...]:
     return tuple(cameras)
 
 
-def _ring_from_doc(ring_doc: Any, names: set[str]) -> tuple[str, ...]:
+def _ring_from_doc(ring_doc: object, names: set[str]) -> tuple[str, ...]:
     """Stage 2a of `rig_from_dict`: a `ring` of two or more distinct, existing cameras."""
     if not isinstance(ring_doc, list) or not all(isinstance(n, str) for n in ring_doc):
         raise InputError(None, "ring", "not a list of camera names")
@@ -298,7 +298,7 @@ def _ring_from_doc(ring_doc: Any, names: set[str]) -> tuple[str, ...]:
     return tuple(ring_doc)
 
 
-def _pairs_from_doc(pairs_doc: Any, names: set[str]) -> tuple[tuple[str, str], ...]:
+def _pairs_from_doc(pairs_doc: object, names: set[str]) -> tuple[tuple[str, str], ...]:
     """Stage 2b of `rig_from_dict`: explicit `pairs` of two different, existing cameras, none repeated."""
     if not isinstance(pairs_doc, list):
         raise InputError(None, "pairs", "not a list of pairs")
@@ -317,7 +317,7 @@ def _pairs_from_doc(pairs_doc: Any, names: set[str]) -> tuple[tuple[str, str], .
     return tuple(pairs_l)
 
 
-def _frame_from_doc(entry: Any, i: int, seen: set[str], names: set[str]) -> Frame:
+def _frame_from_doc(entry: object, i: int, seen: set[str], names: set[str]) -> Frame:
     """Stage 3 of `rig_from_dict`, one `frames[i]` (its id is added to `seen`)."""
     where = f"frames[{i}]"
     if not isinstance(entry, dict):
@@ -341,7 +341,7 @@ _FRAME_KEYS = {"id", "timestamp_us", "ego_to_world", "cameras"}
 _RIG_KEYS = ("format", "cameras", "ring", "pairs", "frames")
 
 
-def rig_from_dict(doc: Any, root: Path | None = None) -> Rig:
+def rig_from_dict(doc: object, root: Path | None = None) -> Rig:
     """Build and check a Rig from a parsed `rig.json`; InputError names the offending key."""
     if not isinstance(doc, dict):
         raise InputError(None, None, "top level is not a JSON object")

@@ -9,6 +9,7 @@ from sgde_plugin.calib.ba import (
     _Problem,
     adjust,
     initial_points,
+    relative_rotation_sigma_deg,
     robust_adjust,
 )
 from sgde_plugin.calib.correspondences import PairMatches
@@ -105,9 +106,10 @@ def test_noise_free_recovery(scene):
     assert rot.max() < 0.003 and trans.max() < 0.002
     assert res.final_rms_px < 0.01 < 1.0 < res.initial_rms_px
     assert np.allclose(res.sensor_to_ego[0], S0[0])  # the reference camera carries the gauge
-    # the default priors (towards the 1 deg / 5 cm perturbed input) bias this light data set only a little
+    # the default priors (towards the 1 deg / 5 cm perturbed input; the mount's sigma is 10 cm) bias this
+    # light data set (3 points per image pair) by a fraction of the perturbation
     rot, trans = rel_errors(adjust(S0, ego, obs, np.full(len(cams), f)).sensor_to_ego, S_true, pairs)
-    assert rot.max() < 0.02 and trans.max() < 0.015
+    assert rot.max() < 0.03 and trans.max() < 0.03
 
 
 def test_metric_scale_comes_from_the_ego_motion(scene):
@@ -118,17 +120,22 @@ def test_metric_scale_comes_from_the_ego_motion(scene):
     S_short = S_true.copy()
     S_short[:, :3, 3] = S_true[0, :3, 3] + 0.7 * (S_true[:, :3, 3] - S_true[0, :3, 3])
     true_baselines = np.array([np.linalg.norm(S_true[b, :3, 3] - S_true[a, :3, 3]) for a, b in pairs])
-    res = adjust(S_short, ego, obs, np.full(len(cams), f))
+    weak_mount = AdjustConfig(sigma_rel_t_m=100.0)
+    res = adjust(S_short, ego, obs, np.full(len(cams), f), config=weak_mount)
     got = np.array([np.linalg.norm(res.sensor_to_ego[b, :3, 3] - res.sensor_to_ego[a, :3, 3]) for a, b in pairs])
     assert np.abs(0.7 * true_baselines - true_baselines).min() > 0.15
     assert np.abs(got - true_baselines).max() < 0.01
+    # the default mount prior (10 cm) holds back a 26-30 cm input error only partly on this light data set
+    res = adjust(S_short, ego, obs, np.full(len(cams), f))
+    got = np.array([np.linalg.norm(res.sensor_to_ego[b, :3, 3] - res.sensor_to_ego[a, :3, 3]) for a, b in pairs])
+    assert np.abs(got - true_baselines).max() < 0.05
 
     # the same world twice as large: rays are unchanged, ego translations and mounts double
     big = S_true.copy()
     big[:, :3, 3] *= 2.0
     ego_big = ego.copy()
     ego_big[:, :3, 3] *= 2.0
-    res2 = adjust(big, ego_big, obs, np.full(len(cams), f))
+    res2 = adjust(big, ego_big, obs, np.full(len(cams), f), config=weak_mount)
     got2 = np.array([np.linalg.norm(res2.sensor_to_ego[b, :3, 3] - res2.sensor_to_ego[a, :3, 3]) for a, b in pairs])
     assert np.allclose(got2, 2.0 * true_baselines, atol=0.01)
 
@@ -217,3 +224,27 @@ def test_per_camera_capture_poses(scene):
             hit = prob.pose_idx[:, j] == k
             an[hit] += Jp[hit, :, j]
         assert np.allclose(an, fd, atol=1e-5 * max(1.0, np.abs(fd).max())), k
+
+
+def test_rotation_sigma_predicts_the_error_and_flags_an_undetermined_camera(scene):
+    """The adjustment's 1-sigma of each adjacent relative rotation is of the size of the actual error on
+    well observed pairs; a camera left with a handful of rays has a sigma far above the acceptance limit
+    (0.5 deg), and the mount prior keeps its translation near the input."""
+    cams, f, pairs, ego, S_true, S0 = scene
+    obs, _, _ = simulate_observations(cams, pairs, ego, per_view_pair=3, noise_px=0.3,
+                                            rng=np.random.default_rng(8))
+    obs = Observations(obs.camera, obs.frame, obs.point, obs.ray, np.full(len(obs), 0.3))
+    focal = np.full(len(cams), f)
+    res, _ = robust_adjust(S0, ego, obs, focal)
+    sigma = np.array([relative_rotation_sigma_deg(res.rotation_cov, a, b) for a, b in pairs])
+    rot, _ = rel_errors(res.sensor_to_ego, S_true, pairs)
+    assert sigma.max() < 0.1 and sigma.min() > 0.005
+    assert np.all(rot < 3 * sigma)
+    # camera 3 loses its observations: only the priors hold it
+    keep = obs.camera != 3
+    sub = Observations(obs.camera[keep], obs.frame[keep], obs.point[keep], obs.ray[keep], obs.sigma_px[keep])
+    res3, _ = robust_adjust(S0, ego, sub, focal)
+    sigma3 = {p: relative_rotation_sigma_deg(res3.rotation_cov, *p) for p in pairs}
+    assert sigma3[(2, 3)] > 1.0 and sigma3[(3, 4)] > 1.0
+    assert max(v for p, v in sigma3.items() if 3 not in p) < 0.1
+    assert np.linalg.norm(res3.sensor_to_ego[3, :3, 3] - S0[3, :3, 3]) < 0.01

@@ -5,7 +5,14 @@ import pytest
 import torch
 
 from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
-from sgde_plugin.calib.features import load_loftr, loftr_match, match_descriptors, sift_features
+from sgde_plugin.calib.features import (
+    Keypoints,
+    load_loftr,
+    loftr_match,
+    mark_fixed,
+    match_descriptors,
+    sift_features,
+)
 from sgde_plugin.calib.outliers import epipolar_angle_deg, essential_inliers, rotation_to_z
 from sgde_plugin.calib.overlap import overlap_grid, pixels_per_radian
 from sgde_plugin.calib.simulate import box_world_rig
@@ -122,7 +129,7 @@ def test_loftr_loads_weights_only_and_matches(tmp_path):
 
 def test_fisheye_overlap_view_maps_back_to_the_fisheye():
     from sgde_plugin.calib.views import overlap_view
-    from sgde_plugin.cameras import Camera, KannalaBrandt
+    from sgde_plugin.cameras import Camera, KannalaBrandt, Pinhole
     from sgde_plugin.geometry import camera_mount
 
     K = np.array([[40.0, 0, 79.5], [0, 40.0, 79.5], [0, 0, 1]])
@@ -142,3 +149,34 @@ def test_fisheye_overlap_view_maps_back_to_the_fisheye():
     assert ok.all() and view.valid[rows, cols].all()
     assert np.allclose(src_uv[:, 0], view.map_x[rows, cols], atol=1e-3)
     assert np.allclose(src_uv[:, 1], view.map_y[rows, cols], atol=1e-3)
+    # a pair of a wide and a narrow camera: the views share the coarser (default), the finer or the mean scale
+    narrow = Camera("N", Pinhole(160, 160, np.array([[160.0, 0, 79.5], [0, 160.0, 79.5], [0, 0, 1]])),
+                    camera_mount(-np.pi / 4, np.array([0.3, -0.3, 1.6])))
+    with torch_threads(1):
+        g = overlap_grid(front, narrow, np.eye(4)[None], margin_px=0.0)
+        f = {s: overlap_view(front, g, other=narrow, crop=True, pair_scale=s).camera.intrinsics.K[0, 0]
+             for s in ("min", "max", "mean")}
+        twice = overlap_view(front, g, other=narrow, crop=True, upsample=2.0).camera.intrinsics.K[0, 0]
+    assert 30.0 < f["min"] < 60.0 and np.isclose(f["max"], 160.0, rtol=0.02)
+    assert np.isclose(f["mean"], np.sqrt(f["min"] * f["max"])) and np.isclose(twice, 2 * f["min"])
+
+
+def test_keypoints_that_stay_at_one_pixel_are_marked_fixed():
+    """Texture that moves with the car (or lies at infinity) recurs at the same pixel in every frame: it is
+    marked, texture of the static world that moves in the image is not, nor a different keypoint that
+    happens to sit at the same pixel."""
+    rng = np.random.default_rng(0)
+    desc = rng.random((30, 128)).astype(np.float32)
+    uv0 = rng.uniform(0, 300, (30, 2))
+    frames = []
+    for t in range(3):
+        uv = uv0.copy()
+        uv[10:] += [25.0 * t, 3.0 * t]  # the static world flows past; keypoints 0-9 ride along with the car
+        d = desc.copy()
+        if t == 2:
+            d[5] = rng.random(128)  # keypoint 5 in frame 2 is another feature at the same pixel
+        frames.append(Keypoints(uv + rng.normal(scale=0.2, size=uv.shape), d))
+    mark_fixed(frames)
+    assert frames[0].fixed[:10].all() and not frames[0].fixed[10:].any()
+    assert frames[2].fixed[:5].all() and frames[2].fixed[6:10].all() and not frames[2].fixed[5]
+    assert frames[1].subset(np.arange(8, 12)).fixed.tolist() == [True, True, False, False]

@@ -113,6 +113,10 @@ def test_acceptance_functions():
     assert both.rule == "not_converged" and [r for r, _ in both.fired] == ["not_converged", "translation_change"]
     assert check_result(True, 10, before, {"A": eye, "B": eye * np.nan}, [("A", "B")], rules).rule == "non_finite"
     assert check_result(True, 200, before, before, [("A", "B")], rules).accepted
+    # a relative rotation the adjustment cannot determine rejects the window, one it pins down does not
+    weak = check_result(True, 10, before, before, [("A", "B")], rules, {("A", "B"): 0.3, ("B", "C"): 1.2})
+    assert weak.rule == "weakly_constrained" and "B-C 1.20 deg" in weak.reason
+    assert check_result(True, 10, before, before, [("A", "B")], rules, {("A", "B"): 0.3}).accepted
 
 
 def test_a_pair_without_matches_is_calibrated_through_the_ring(box):

@@ -6,8 +6,6 @@ Runtime ~6 s on 2 cores (one 1-frame synthetic rig at 400x225 for the command-li
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 
 from sgde_plugin.cache.fingerprints import config_document, digest, fingerprint
@@ -16,7 +14,7 @@ from sgde_plugin.cli import build_parser
 from sgde_plugin.cli import main as cli_main
 from sgde_plugin.commands.prior import SETTING_OPTIONS, load_rig_with_override, settings_from_args
 from sgde_plugin.errors import InputError
-from sgde_plugin.stereo.pipeline import RUNTIME_FIELDS, PriorConfig
+from sgde_plugin.stereo.config import RUNTIME_FIELDS, SETTINGS, PriorConfig
 from sgde_plugin.stereo.presets import PRESETS, load_prior_config, read_config_file, save_prior_config
 
 # a value other than the default for every field (all valid together)
@@ -28,7 +26,7 @@ CHANGED = {
     "border_px": 3, "refine_iterations": 2, "min_zncc": 0.4, "max_abs_diff": 10.0, "min_texture": 0.25,
     "min_region_px": 100, "color": False, "margin_px": 4, "max_azimuth_deg": 70.0, "max_elevation_deg": 40.0,
     "fisheye": "virtual", "confidence_disparity_px": 4.0, "edge_jump_px": 2.0, "normalize": "local", "antialias": True,
-    "min_confidence": 0.3,
+    "min_confidence": 0.3, "edge_depth_ratio": 0.2, "edge_window_px": 9,
     "normalize_sigma": 6.0,
 }
 
@@ -41,13 +39,13 @@ def model(tmp_path):
 
 
 def test_every_field_round_trips_through_a_file_and_has_an_option(model, tmp_path):
-    names = [f.name for f in dataclasses.fields(PriorConfig)]
+    names = list(SETTINGS)
     assert sorted(CHANGED) == sorted(n for n in names if n != "matcher_path")
-    config = PriorConfig(**CHANGED, matcher_path=str(model))
-    default = PriorConfig(matcher="torch", matcher_path=str(model))
-    assert all(getattr(config, n) != getattr(default, n) for n in CHANGED if n != "matcher")
+    config = PriorConfig.from_settings(**CHANGED, matcher_path=str(model))
+    default = PriorConfig.from_settings(matcher="torch", matcher_path=str(model))
+    assert all(config.get(n) != default.get(n) for n in CHANGED if n != "matcher")
     assert load_prior_config(save_prior_config(config, tmp_path / "c.yaml")) == config
-    assert PriorConfig(**config.settings()) == config
+    assert PriorConfig.from_settings(**config.settings()) == config
     for preset in PRESETS:  # presets and matcher-dependent defaults survive the round trip too
         for matcher in ("sgbm", "raft-stereo"):
             c = load_prior_config(preset=preset, overrides={"matcher": matcher, "matcher_path": str(model)})
@@ -60,38 +58,41 @@ def test_every_field_round_trips_through_a_file_and_has_an_option(model, tmp_pat
          "--no-color", "--matcher-flow-output", "--min-zncc", "0.4", "--matcher-option", "width=3",
          "--matcher-option", "names=[a, b]"])
     got = load_prior_config(overrides=settings_from_args(args))
-    assert (got.block_size, got.color, got.matcher_flow_output, got.min_zncc) == (5, False, True, 0.4)
-    assert got.matcher_options == {"width": 3, "names": ["a", "b"]}
+    got_values = (got.sgbm.block_size, got.images.color, got.matcher.flow_output, got.filters.min_zncc)
+    assert got_values == (5, False, True, 0.4)
+    assert got.matcher.options == {"width": 3, "names": ["a", "b"]}
 
 
 def test_matcher_dependent_defaults_and_layer_order(model, tmp_path):
-    sgbm, learned = PriorConfig(), PriorConfig(matcher="raft-stereo", matcher_path=str(model))
-    assert (sgbm.refine_iterations, sgbm.color, sgbm.min_texture, sgbm.matcher_flow_output) == (1, False, 0.5, False)
-    assert (learned.refine_iterations, learned.color, learned.min_texture) == (0, True, 0.0)
-    assert learned.matcher_flow_output and learned.matcher_iters == 32
+    sgbm, learned = PriorConfig(), PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(model))
+    f, m = sgbm.filters, sgbm.matcher
+    sgbm_values = (f.refine_iterations, sgbm.images.color, f.min_texture, m.flow_output)
+    assert sgbm_values == (1, False, 0.5, False)
+    assert (learned.filters.refine_iterations, learned.images.color, learned.filters.min_texture) == (0, True, 0.0)
+    assert learned.matcher.flow_output and learned.matcher.iters == 32
     # a saved SGBM file switched to a learned matcher takes the learned defaults (nulls, not SGBM's values)
     path = save_prior_config(sgbm, tmp_path / "s.yaml")
     switched = load_prior_config(path, overrides={"matcher": "onnx", "matcher_path": str(model)})
-    assert (switched.refine_iterations, switched.color) == (0, True)
+    assert (switched.filters.refine_iterations, switched.images.color) == (0, True)
     # defaults < preset < file < overrides; a file may name its preset
     path.write_text("preset: ddad\nuniqueness: 9\n")
-    assert load_prior_config(path).max_depth == 200.0 and load_prior_config(path).uniqueness == 9
-    assert load_prior_config(path, preset="nuscenes").max_depth == 80.0
-    assert load_prior_config(path, overrides={"max_depth": 120, "uniqueness": None}).max_depth == 120.0
+    assert load_prior_config(path).geometry.max_depth == 200.0 and load_prior_config(path).sgbm.uniqueness == 9
+    assert load_prior_config(path, preset="nuscenes").geometry.max_depth == 80.0
+    assert load_prior_config(path, overrides={"max_depth": 120, "uniqueness": None}).geometry.max_depth == 120.0
     assert read_config_file(path) == {"preset": "ddad", "uniqueness": 9}
 
 
 def test_fingerprint_follows_every_setting_but_the_runtime_ones(model):
-    base = PriorConfig(matcher="torch", matcher_path=str(model))
+    base = PriorConfig.from_settings(matcher="torch", matcher_path=str(model))
     base_fp = digest(config_document(base))
     for name, value in CHANGED.items():
         if name == "matcher":
             continue
-        changed = dataclasses.replace(base, **{name: value})
+        changed = base.replace(**{name: value})
         same = digest(config_document(changed)) == base_fp
         assert same == (name in RUNTIME_FIELDS), name
     for preset, settings in PRESETS.items():  # a preset is exactly its settings, fingerprint included
-        explicit = PriorConfig(**settings)
+        explicit = PriorConfig.from_settings(**settings)
         assert digest(config_document(load_prior_config(preset=preset))) == digest(config_document(explicit))
     assert digest(config_document(load_prior_config(preset="ddad"))) != digest(config_document(PriorConfig()))
     model.write_bytes(b"other weights")
@@ -133,7 +134,7 @@ def test_bad_command_line_values_and_presets_are_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(err) == 1 and needle in err[0], (argv, err)
     with pytest.raises(InputError, match="block_size: must be odd"):
-        PriorConfig(block_size=4)
+        PriorConfig.from_settings(block_size=4)
 
 
 def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_path, capsys):
@@ -147,7 +148,7 @@ def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_p
     assert cli_main([*argv, "--min-region-px", "120"]) == 0
     capsys.readouterr()
     rig = load_rig_with_override(str(root), true_rig)
-    expected = PriorConfig(**{**PRESETS["ddad"], "uniqueness": 12, "min_region_px": 120})
+    expected = PriorConfig.from_settings(**{**PRESETS["ddad"], "uniqueness": 12, "min_region_px": 120})
     assert PriorCache(out).fingerprint == fingerprint(rig, expected)
     # the same settings from another file are the same cache; a changed file is refused, naming the change
     save_prior_config(expected, tmp_path / "same.yaml")
@@ -156,3 +157,40 @@ def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_p
     assert cli_main([*argv, "--preset", "nuscenes", "--min-region-px", "120"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "max_depth 200.0 -> 80.0" in err[0]
+
+
+# config-document digests: the nesting by concern was checked against the flat fields of commit 68affc8; they
+# were re-pinned once when issue #16 added edge_depth_ratio and edge_window_px (a new setting changes every
+# document). The grouping must not change any cache's fingerprint
+PINNED = {"defaults": "a2491d3cb807122352d4", "synthetic": "a2491d3cb807122352d4", "nuscenes": "325c6382e08fb752e003",
+          "ddad": "53859d12217b188335a3", "fisheye": "a2491d3cb807122352d4", "changed": "b83473bf3cd264f18262"}
+
+
+def test_fingerprints_are_those_of_the_flat_config():
+    got = {"defaults": digest(config_document(PriorConfig()))}
+    got |= {name: digest(config_document(load_prior_config(preset=name))) for name in PRESETS}
+    changed = {k: v for k, v in CHANGED.items() if k not in ("matcher", "matcher_path")}  # SGBM: no model file
+    got["changed"] = digest(config_document(PriorConfig.from_settings(changed)))
+    assert got == PINNED
+
+
+def test_nested_and_flat_config_files_and_every_group_in_the_fingerprint(model, tmp_path):
+    path = tmp_path / "nested.yaml"
+    path.write_text("preset: ddad\nsgbm: {uniqueness: 9, p2: 40}\nmatcher: {name: torch, path: " + str(model) + "}\n"
+                    "geometry:\n  scale: 0.25\nmin_zncc: 0.3\n")
+    config = load_prior_config(path)
+    got = (config.sgbm.uniqueness, config.sgbm.p2, config.geometry.scale, config.filters.min_zncc)
+    assert got == (9, 40, 0.25, 0.3)
+    assert config.matcher.name == "torch" and config.geometry.max_depth == 200.0
+    flat = PriorConfig.from_settings({**PRESETS["ddad"], "uniqueness": 9, "p2": 40, "matcher": "torch",
+                                      "matcher_path": str(model), "scale": 0.25, "min_zncc": 0.3})
+    assert config == flat and load_prior_config(save_prior_config(config, tmp_path / "s.yaml")) == config
+    for text, needle in (("sgbm: {blocksize: 5}\n", "sgbm.blocksize: unknown setting"),
+                         ("sgbm: {uniqueness: 9}\nuniqueness: 8\n", "uniqueness: given twice"),
+                         ("filters: 3\n", "filters: expected a mapping")):
+        path.write_text(text)
+        with pytest.raises(InputError, match=needle):
+            load_prior_config(path)
+    # the fingerprint document holds every group whatever the matcher (none is dropped for SGBM or a learned one)
+    for c in (PriorConfig(), config):
+        assert set(c.to_dict()) >= set(SETTINGS) - set(RUNTIME_FIELDS)

@@ -7,7 +7,7 @@ import pytest
 from test_stereo_prior import pinhole_scene
 
 from sgde_plugin.stereo.evaluate import PriorEvaluator, sparsification_curve
-from sgde_plugin.stereo.filters import discontinuity_factor, normalize_image
+from sgde_plugin.stereo.filters import depth_edge_factor, discontinuity_factor, normalize_image
 from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
 from sgde_plugin.stereo.rectify import torch_threads
 
@@ -45,7 +45,7 @@ def test_normalisation_keeps_a_pair_with_a_known_gain_difference():
     dark["FRONT_RIGHT"] = _exposed(images["FRONT_RIGHT"], 0.55, 25.0)
 
     def run(mode, imgs):
-        out = PriorBuilder(rig, PriorConfig(normalize=mode)).build(imgs)
+        out = PriorBuilder(rig, PriorConfig.from_settings(normalize=mode)).build(imgs)
         n, errs = 0, []
         for cam in ("FRONT", "FRONT_RIGHT"):
             p, g = out[cam].depth, depths[cam]
@@ -103,6 +103,33 @@ def test_discontinuity_factor():
     f = discontinuity_factor(disp, np.ones_like(disp, bool), jump_px=2.0)
     assert f[:, :6].min() == 1.0 and f[:, 14:].min() == 1.0
     assert f[:, 9:11].max() == pytest.approx(0.2)
+
+
+def test_depth_edge_factor_by_ratio():
+    """Full confidence up to a local depth ratio of 1 + r, linear to zero at 1 + 5 r, the same near and far."""
+    for near in (2.0, 40.0):
+        depth = np.full((40, 40), near, np.float32)
+        depth[:, 20:] = near * 1.3  # ratio 1.3: factor 1 - (0.3 - 0.1) / 0.4 = 0.5 within the window of the edge
+        depth[:, 30:] = 0  # no prior: factor 1, and not counted as a depth
+        f = depth_edge_factor(depth, ratio=0.1, window=5)
+        assert f[:, :17].min() == 1.0 and f[:, 23:].min() == 1.0
+        assert f[:, 18:22] == pytest.approx(np.full((40, 4), 0.5), abs=1e-5)
+    depth[:, :20] = 10.0
+    depth[:, 20:30] = 16.0  # ratio 1.6 > 1.5: zero
+    assert depth_edge_factor(depth, 0.1, 5)[:, 18:22].max() == 0.0
+
+
+def test_edge_factor_in_the_prior_costs_nothing_without_occlusion_edges():
+    """A rendered wall and ground (no occlusion edge): the edge factor keeps every value and its depth."""
+    rig, images, _ = pinhole_scene()
+    plain = PriorBuilder(rig, PriorConfig()).build(images)
+    edged = PriorBuilder(rig, PriorConfig.from_settings(edge_depth_ratio=0.1)).build(images)
+    for name, p in plain.items():
+        e = edged[name]
+        assert p.valid.sum() > 1000 and np.array_equal(e.valid, p.valid)
+        assert np.array_equal(e.depth, p.depth) and np.all(e.confidence <= p.confidence)
+        # only where the ground's depth changes fast near the car is the confidence lowered (12 % here)
+        assert np.mean(e.confidence[e.valid] >= 0.99 * p.confidence[p.valid]) > 0.8
 
 
 def test_cache_get_min_confidence(tmp_path):

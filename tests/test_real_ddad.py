@@ -52,7 +52,8 @@ def test_bench_real_on_scene_01_one_frame(tmp_path: Path) -> None:
 
     rig = load_rig(SAMPLE / "scene_01")
     write_rig_json(rig, tmp_path / "same.json")  # a second pose source equal to the data set's
-    report = run_real(SAMPLE / "scene_01", [str(tmp_path / "same.json")], PriorConfig(scale=0.25), max_frames=1)
+    config = PriorConfig.from_settings(scale=0.25)
+    report = run_real(SAMPLE / "scene_01", [str(tmp_path / "same.json")], config, max_frames=1)
     assert report["frames"] == 1 and report["pairs"] == ["CAMERA_01|CAMERA_06", "CAMERA_05|CAMERA_01"]
     a, b = report["sources"]["dataset"], report["sources"][str(tmp_path / "same.json")]
     assert a["overall"] == b["overall"]

@@ -211,10 +211,11 @@ def test_raft_stereo_errors_are_one_line(scene, checkout, tmp_path, capsys, monk
 
 def test_fingerprint_follows_the_checkpoint_and_the_architecture_code(raft, checkout):
     ckpt, _ = raft
-    config = PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt))
+    config = PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(ckpt))
     fp = digest(config_document(config))
     assert config.to_dict()["matcher_code_sha256"]
-    assert digest(config_document(PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt), matcher_iters=12))) != fp
+    fewer = PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(ckpt), matcher_iters=12)
+    assert digest(config_document(fewer)) != fp
     source = checkout / "core" / "raft_stereo.py"
     text = source.read_text()
     try:
@@ -241,8 +242,8 @@ def test_search_range_batching_and_refinement_default(scene, raft):
     _, _, rig = scene
     ckpt, stand_in = raft
     images = load_frame_images(rig, rig.frames[0].id)
-    one = PriorBuilder(rig, PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt), matcher_batch=1))
-    four = PriorBuilder(rig, PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt), matcher_batch=4))
+    one = PriorBuilder(rig, PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(ckpt), matcher_batch=1))
+    four = PriorBuilder(rig, PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(ckpt), matcher_batch=4))
     stand_in.CALLS.clear()
     a = one.build(images)
     calls_one = len(stand_in.CALLS)
@@ -253,7 +254,8 @@ def test_search_range_batching_and_refinement_default(scene, raft):
         assert np.array_equal(a[cam].depth, b[cam].depth)
     # the matcher sees the canvases the filters see: photometric normalisation (grey out) reaches it
     stand_in.CALLS.clear()
-    PriorBuilder(rig, PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt), normalize="gain")).build(images)
+    gain = PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(ckpt), normalize="gain")
+    PriorBuilder(rig, gain).build(images)
     assert stand_in.CALLS and not any(c["rgb"] for c in stand_in.CALLS)
     # the search range reaches a module that asks for it
     module = RangeMatcher()
@@ -261,7 +263,8 @@ def test_search_range_batching_and_refinement_default(scene, raft):
     disp, conf = matcher.match(np.zeros((40, 70), np.uint8), np.zeros((40, 70), np.uint8), 48)
     assert module.seen == [48] and np.allclose(disp, 24.0) and conf.min() == 1.0
     # learned output is not "refined": with refinement on, perfect disparities get worse
-    refined = PriorBuilder(rig, PriorConfig(matcher="raft-stereo", matcher_path=str(ckpt), refine_iterations=1))
+    refined = PriorBuilder(
+        rig, PriorConfig.from_settings(matcher="raft-stereo", matcher_path=str(ckpt), refine_iterations=1))
     gt = {c: rig.load_depth(rig.frames[0].id, c) for c in rig.camera_names}
     errors = []
     for out in (a, refined.build(images)):
@@ -313,7 +316,7 @@ def test_onnx_matcher_dynamic_fixed_and_external_weights(scene, tmp_path, capsys
     overall = _abs_rel(root, cache, tmp_path, capsys)
     assert overall["coverage"] > 0.05 and overall["abs_rel"] < 0.1, overall  # a crude matcher (32 px), but a prior
     # the weights live in dyn.onnx.data: changing them alone changes the fingerprint
-    config = PriorConfig(matcher="onnx", matcher_path=str(dyn))
+    config = PriorConfig.from_settings(matcher="onnx", matcher_path=str(dyn))
     fp, graph = digest(config_document(config)), dyn.read_bytes()
     tensor = next(t for t in onnx.load(str(dyn), load_external_data=False).graph.initializer if "sharpness" in t.name)
     offset = int(next((e.value for e in tensor.external_data if e.key == "offset"), 0))
@@ -352,14 +355,14 @@ def test_devices_workers_and_threads(scene, tmp_path, monkeypatch):
     _, _, rig = scene
     model = tmp_path / "m.pt"
     model.write_bytes(b"x")
-    learned = PriorConfig(matcher="torch", matcher_path=str(model))
+    learned = PriorConfig.from_settings(matcher="torch", matcher_path=str(model))
     cpus = usable_cpus()
     assert default_workers(PriorConfig()) == cpus
     monkeypatch.setattr("sgde_plugin.cache.build.available_memory", lambda: 3 * 1024**3)
     assert default_workers(learned) == 1  # 2 GiB per learned-matcher worker
     monkeypatch.setattr("sgde_plugin.cache.build.available_memory", lambda: 64 * 1024**3)
     assert default_workers(learned) == cpus
-    assert default_workers(PriorConfig(matcher="torch", matcher_path=str(model), device="cuda")) == 1
+    assert default_workers(PriorConfig.from_settings(matcher="torch", matcher_path=str(model), device="cuda")) == 1
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr("os.getloadavg", lambda: (0.2, 0.2, 0.2))
     assert torch_threads_per_worker(1) == cpus and torch_threads_per_worker(cpus) == 1  # idle machine

@@ -160,7 +160,7 @@ def test_prior_builder_runs_a_learned_matcher(tiny_files, tmp_path):
     path = tmp_path / "wide.pt"
     example = (torch.rand(1, 3, 64, 128) * 255, torch.rand(1, 3, 64, 128) * 255)
     torch.jit.trace(TinyMatcher(48).eval(), example).save(str(path))  # the pair searches 48 px
-    config = PriorConfig(matcher="torch", matcher_path=str(path))
+    config = PriorConfig.from_settings(matcher="torch", matcher_path=str(path))
     assert config.to_dict()["matcher_sha256"]
     with torch_threads(1):  # OpenMP threads crawl when the machine is busy (see rectify.torch_threads)
         out = PriorBuilder(rig, config).build(images)

@@ -91,14 +91,14 @@ def test_masks_and_depth_range_are_respected():
     full = PriorBuilder(rig, PriorConfig()).build(images)
     assert (out["FRONT_RIGHT"].depth > 0).sum() < 0.9 * (full["FRONT_RIGHT"].depth > 0).sum()
     # a closer maximum depth drops the wall (8-13 m) and keeps the nearer ground
-    near = PriorBuilder(rig, PriorConfig(max_depth=7.0)).build(images)["FRONT"].depth
+    near = PriorBuilder(rig, PriorConfig.from_settings(max_depth=7.0)).build(images)["FRONT"].depth
     assert near.any() and near.max() <= 7.0
 
 
 def test_fisheye_path_agrees_with_the_virtual_pinhole_path():
     rig, images, depths = fisheye_scene()
-    direct = PriorBuilder(rig, PriorConfig(fisheye="direct")).build(images)
-    virtual = PriorBuilder(rig, PriorConfig(fisheye="virtual")).build(images)
+    direct = PriorBuilder(rig, PriorConfig.from_settings(fisheye="direct")).build(images)
+    virtual = PriorBuilder(rig, PriorConfig.from_settings(fisheye="virtual")).build(images)
     for name in ("F", "R"):
         a, b, gt = direct[name].depth, virtual[name].depth, depths[name]
         both = (a > 0) & (b > 0)
@@ -130,17 +130,18 @@ def test_camera_without_overlap_gets_an_empty_map_and_bad_input_is_refused():
 def test_config_dict_tracks_everything_that_changes_the_output(tmp_path):
     base = PriorConfig().to_dict()
     assert base["algo_version"] == PRIOR_ALGO_VERSION and base["matcher"] == "sgbm" and base["scale"] == 0.5
-    assert PriorConfig(scale=0.25).to_dict() != base and PriorConfig(uniqueness=5).to_dict() != base
+    assert PriorConfig.from_settings(scale=0.25).to_dict() != base
+    assert PriorConfig.from_settings(uniqueness=5).to_dict() != base
     model = tmp_path / "m.pt"
     model.write_bytes(b"one")
-    d1 = PriorConfig(matcher="torch", matcher_path=str(model)).to_dict()
+    d1 = PriorConfig.from_settings(matcher="torch", matcher_path=str(model)).to_dict()
     model.write_bytes(b"two")
-    d2 = PriorConfig(matcher="torch", matcher_path=str(model)).to_dict()
+    d2 = PriorConfig.from_settings(matcher="torch", matcher_path=str(model)).to_dict()
     assert d1["matcher_sha256"] != d2["matcher_sha256"] and d1["uniqueness"] == 15  # every setting is in
     with pytest.raises(InputError):
-        PriorConfig(matcher="raft")
+        PriorConfig.from_settings(matcher="raft")
     with pytest.raises(InputError):
-        PriorConfig(matcher="torch")  # needs a file
+        PriorConfig.from_settings(matcher="torch")  # needs a file
 
 
 def test_fusion_of_two_neighbours():

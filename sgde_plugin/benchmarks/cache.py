@@ -15,6 +15,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from torch.utils.data import DataLoader, Subset
+
+from ..cache.build import build_cache
+from ..cache.dataset import PriorDataset
+from ..cache.inspection import cache_info
+from ..cache.store import PriorCache, store_keys
+from ..rig import Rig, attach_files, read_rig_json
+from ..stereo.config import PriorConfig
+from ..synth.sequence import write_synth
+from ..tables import markdown_table
 
 # nuScenes v1.0: 850 trainval + 150 test scenes; 34,149 + 6,008 keyframes (samples) of 6 cameras;
 # cameras run at 12 Hz against 2 Hz keyframes, 1.4M camera images in all (keyframes + sweeps).
@@ -29,9 +39,6 @@ TARGETS = {"bytes_per_image": 150 * 1024, "read_ms_median": 5.0, "build_speedup_
 def _rig(tmp: Path, rendered: int, frames: int):
     """A 800x450 synthetic nuScenes rig (true extrinsics) with `frames` frames cycling over the
     `rendered` rendered ones (the build cost per frame is the same)."""
-    from ..rig import attach_files, read_rig_json
-    from ..synth.sequence import write_synth
-
     root = write_synth("nuscenes", rendered, tmp / "nuscenes", scale=0.5)
     rig = attach_files(read_rig_json(Path(root) / "rig_true.json"), Path(root))
     base = rig.frames
@@ -39,11 +46,8 @@ def _rig(tmp: Path, rendered: int, frames: int):
     return replace(rig, frames=tuple(out))
 
 
-def _build(rig: Any, out: Path, workers: int) -> dict[str, float]:
+def _build(rig: Rig, out: Path, workers: int) -> dict[str, float]:
     """One build; with one worker (in this process) its CPU time per frame is load-independent."""
-    from ..cache.build import build_cache
-    from ..stereo.pipeline import PriorConfig
-
     cpu = time.process_time()
     report = build_cache(rig, out, PriorConfig(), workers=workers, scene="bench", show_progress=False)
     cpu = time.process_time() - cpu
@@ -60,7 +64,7 @@ def _build(rig: Any, out: Path, workers: int) -> dict[str, float]:
     return out_row
 
 
-def _best_builds(rig: Any, tmp: Path, reps: int) -> tuple[dict[str, float], dict[str, float]]:
+def _best_builds(rig: Rig, tmp: Path, reps: int) -> tuple[dict[str, float], dict[str, float]]:
     """1- and 2-worker builds, alternated `reps` times; the best steady throughput of each (the
     machine may be shared: alternating and keeping the best rejects most of others' load), with
     the shortest total time over the repetitions as `best_seconds` (the first 2-worker build also
@@ -79,8 +83,6 @@ def _best_builds(rig: Any, tmp: Path, reps: int) -> tuple[dict[str, float], dict
 
 
 def _read_latency(cache_dir: Path, frames: list[str], cameras: list[str], n: int) -> dict[str, float]:
-    from ..cache.store import PriorCache
-
     cache = PriorCache(cache_dir)
     rng = np.random.default_rng(0)
     cache.get(frames[0], cameras[0])  # open the arrays once
@@ -103,11 +105,7 @@ def _read_latency(cache_dir: Path, frames: list[str], cameras: list[str], n: int
     }
 
 
-def _loader_throughput(rig: Any, cache_dir: Path, workers: int, limit: int) -> float:
-    from torch.utils.data import DataLoader, Subset
-
-    from ..cache.dataset import PriorDataset
-
+def _loader_throughput(rig: Rig, cache_dir: Path, workers: int, limit: int) -> float:
     ds = PriorDataset(rig, str(cache_dir), (256, 704), with_gt=False)
     ds = Subset(ds, list(range(min(limit, len(ds)))))
     loader = DataLoader(ds, batch_size=6, num_workers=workers)
@@ -141,10 +139,6 @@ def extrapolation(bytes_per_image: float, cpu_s_per_frame: float, cameras: int =
 
 def run(fast: bool = False) -> dict[str, Any]:
     """All figures of the cache benchmark (fast: fewer frames, fewer reads)."""
-    from ..cache.inspection import cache_info
-    from ..cache.store import store_keys
-    from ..tables import markdown_table
-
     rendered, frames, reads, reps = (1, 6, 50, 1) if fast else (3, 60, 300, 2)
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="sgde-bench-cache-") as tmp_name:

@@ -27,7 +27,19 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from typing import Any
+
+import numpy as np
+
+from ..calib import Timings, calibrate
+from ..pairs import relative_pose_errors
+from ..rig import Rig
+from ..stereo.evaluate import evaluate_priors
+from ..stereo.pipeline import PriorBuilder, PriorConfig
+from ..synth.sequence import SynthSequence, synth_sequence
+from ..tables import markdown_table
+from .colmap_peer import calibrate_colmap
 
 METHOD_ORDER = ("none", "pairwise", "wo-glc", "glc")
 ACCURACY_TARGETS = {"rotation_median_deg": 0.02, "rotation_max_deg": 0.05, "translation_max_m": 0.02}
@@ -38,11 +50,7 @@ TARGETS = {"seconds_total": 30.0, "rotation_median_deg": 0.05, "rotation_max_deg
 PRIOR_KEYS = ("abs_rel", "sq_rel", "rmse", "a1", "coverage")
 
 
-def _pose_errors(rig: Any, rig_true: Any) -> dict[str, float]:
-    import numpy as np
-
-    from ..pairs import relative_pose_errors
-
+def _pose_errors(rig: Rig, rig_true: Rig) -> dict[str, float]:
     rows = relative_pose_errors(rig, rig_true)
     rot = [r["rotation_deg"] for r in rows]
     trans = [r["translation_m"] for r in rows]
@@ -50,10 +58,7 @@ def _pose_errors(rig: Any, rig_true: Any) -> dict[str, float]:
             "translation_median_m": float(np.median(trans)), "translation_max_m": float(max(trans))}
 
 
-def _prior_metrics(rig: Any, seq: Any) -> dict[str, float]:
-    from ..stereo.evaluate import evaluate_priors
-    from ..stereo.pipeline import PriorBuilder, PriorConfig
-
+def _prior_metrics(rig: Rig, seq: SynthSequence) -> dict[str, float]:
     builder = PriorBuilder(rig, PriorConfig())
     priors = {fr.id: builder.build(seq.images[fr.id]) for fr in rig.frames}
     report = evaluate_priors(seq.rig_true, lambda f, c: priors[f][c].depth, lambda f, c: seq.depths[f][c])
@@ -62,10 +67,6 @@ def _prior_metrics(rig: Any, seq: Any) -> dict[str, float]:
 
 def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
     """All methods on one rendered window, sharing the correspondences; prior metrics per method."""
-    from ..calib import Timings, calibrate
-    from ..synth.sequence import synth_sequence
-    from ..tables import markdown_table
-
     t0 = time.perf_counter()
     seq = synth_sequence(preset, frames, seed=0, scale=scale)
     render_s = time.perf_counter() - t0
@@ -98,11 +99,6 @@ def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
 
 def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: bool = True) -> dict[str, Any]:
     """GLC from the noisy and from the exact start (and the peer from the noisy one) on one rendered rig."""
-    import numpy as np
-
-    from ..calib import calibrate
-    from ..synth.sequence import synth_sequence
-
     seq = synth_sequence(preset, 7, seed=seed, scale=0.5, capture=capture)
     row: dict[str, Any] = {"rig": preset, "seed": seed, "capture": capture, "cameras": len(seq.rig.cameras)}
     for start, rig in (("noisy", seq.rig), ("exact", seq.rig_true)) if glc else ():
@@ -112,11 +108,11 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
         row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
                                                 if p["status"] == "through ring"],
+                               "rotation_sigma_deg": [p["rotation_sigma_deg"] for p in w["pairs"]],
+                               "rotation_deg": [r["rotation_deg"] for r in relative_pose_errors(out, seq.rig_true)],
                                **_pose_errors(out, seq.rig_true)}
     row["input"] = _pose_errors(seq.rig, seq.rig_true)
     if peer == "colmap":
-        from .colmap_peer import calibrate_colmap
-
         ids = [f.id for f in seq.rig.frames]
         ego = np.stack([f.ego_to_world for f in seq.rig.frames])
         t0 = time.perf_counter()
@@ -127,7 +123,7 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
     return row
 
 
-def accuracy(peer: str | None = None, rigs=ACCURACY_RIGS) -> dict[str, Any]:
+def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS) -> dict[str, Any]:
     """GLC (and a peer) on the presets and the random rigs; the table rows and which targets hold."""
     rows = []
     for preset, seed, capture in rigs:
@@ -149,8 +145,6 @@ def run(fast: bool = False, peer: str | None = None) -> dict[str, Any]:
         load = os.getloadavg()
         return {**accuracy(peer), "load_average": [load, os.getloadavg()],
                 "command": f"sgde bench calibrate --peer {peer} --json OUT.json"}
-    from ..calib import Timings, calibrate
-    from ..synth.sequence import synth_sequence
 
     load_before = os.getloadavg()
     if fast:

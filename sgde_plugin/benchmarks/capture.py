@@ -15,16 +15,19 @@ import time
 from dataclasses import replace
 from typing import Any
 
+from ..rig import Rig
+from ..stereo.config import PriorConfig
+from ..stereo.evaluate import PriorEvaluator
+from ..stereo.pipeline import PriorBuilder
+from ..synth.sequence import SynthSequence, synth_sequence
+
 ARMS = ("sync", "sequential, per-camera poses", "sequential, frame pose only")
 
 
-def _score(seq: Any, rig_builder: Any, use_frames: bool, config: Any) -> dict[str, Any]:
+def _score(seq: SynthSequence, rig_builder: Rig, use_frames: bool, config: PriorConfig) -> dict[str, Any]:
     """Priors of every frame of `seq` built on `rig_builder`'s geometry, scored against seq's truth."""
-    from ..stereo.evaluate import PriorEvaluator
-    from ..stereo.pipeline import PriorBuilder
-
     builder = PriorBuilder(rig_builder, config)
-    evaluator = PriorEvaluator(seq.rig_true, config.max_depth)
+    evaluator = PriorEvaluator(seq.rig_true, config.geometry.max_depth)
     for fid, images in seq.images.items():
         out = builder.build(images, frame=fid if use_frames else None)
         evaluator.add({c: m.depth for c, m in out.items()}, seq.depths[fid], frame=fid)
@@ -35,9 +38,6 @@ def _score(seq: Any, rig_builder: Any, use_frames: bool, config: Any) -> dict[st
 def run(fast: bool = False, preset: str = "nuscenes", frames: int = 3, seed: int = 0, sweep_ms: float = 50.0,
         scale: float | None = None) -> dict[str, Any]:
     """The three arms' accuracy and coverage; `fast`: 2 frames at half size."""
-    from ..stereo.pipeline import PriorConfig
-    from ..synth.sequence import synth_sequence
-
     t0 = time.perf_counter()
     scale = (0.5 if fast else 1.0) if scale is None else scale
     frames = 2 if fast else frames

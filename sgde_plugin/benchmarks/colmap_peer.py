@@ -15,6 +15,7 @@ from __future__ import annotations
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +23,9 @@ from ..cameras import Camera, KannalaBrandt, Pinhole
 from ..errors import InputError
 from ..geometry import invert_transform
 from ..io import write_image
+
+if TYPE_CHECKING:  # pycolmap is the optional `peer` extra
+    import pycolmap
 
 
 def available() -> bool:
@@ -33,7 +37,7 @@ def available() -> bool:
     return True
 
 
-def colmap_camera(cam: Camera):
+def colmap_camera(cam: Camera) -> pycolmap.Camera:
     """The pycolmap camera of one of ours (COLMAP puts the centre of the top-left pixel at (0.5, 0.5))."""
     import pycolmap
 
@@ -169,7 +173,7 @@ def _extrinsics(rec, cameras, ego_to_world, reference, cam_id) -> tuple[dict[str
     return out, facts
 
 
-def pycolmap_sensor(camera_id: int):
+def pycolmap_sensor(camera_id: int) -> pycolmap.sensor_t:
     """The sensor id of a camera."""
     import pycolmap
 

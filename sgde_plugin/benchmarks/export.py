@@ -12,6 +12,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import torch
+
+from ..export.models import build_bevdepth, build_r18
+from ..export.parity import onnx_session, run_onnx
+from ..export.workflow import export_spec
+
 
 def _interleaved(torch_fn, ort_fn, reps: int) -> tuple[list[float], list[float]]:  # noqa: ANN001
     torch_fn()  # warm-up both (allocations, onnxruntime's first-run planning)
@@ -29,10 +35,6 @@ def _interleaved(torch_fn, ort_fn, reps: int) -> tuple[list[float], list[float]]
 
 
 def _bench_spec(spec, batch: int, reps: int, workdir: Path) -> dict:  # noqa: ANN001
-    import torch
-
-    from ..export.parity import onnx_session, run_onnx
-    from ..export.workflow import export_spec
 
     path = workdir / f"{spec.name}.onnx"
     report = export_spec(spec, path)
@@ -65,9 +67,6 @@ def _bench_spec(spec, batch: int, reps: int, workdir: Path) -> dict:  # noqa: AN
 def run(fast: bool = False) -> dict:
     """Latency of both exported models in onnxruntime vs torch eager (medians, ms, and the ratio)."""
     import onnxruntime
-    import torch
-
-    from ..export.models import build_bevdepth, build_r18
 
     reps = 3 if fast else 10
     torch.manual_seed(0)

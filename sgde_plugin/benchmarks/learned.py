@@ -22,19 +22,22 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
+from ..cache.build import torch_threads_per_worker
+from ..readers.detect import load_rig
+from ..rig import Rig, load_frame_images, read_rig_json
+from ..stereo.config import PriorConfig
+from ..stereo.pipeline import PriorBuilder
+from ..synth.sequence import write_synth
+
 MODELS = {"raft_small": "torchvision.models.optical_flow:raft_small",
           "raft_large": "torchvision.models.optical_flow:raft_large"}
 
 
-def _measure(rig: Any, config: Any, frames: int) -> dict[str, Any]:
+def _measure(rig: Rig, config: PriorConfig, frames: int) -> dict[str, Any]:
     """Model load, first-frame and steady per-frame seconds of PriorBuilder with `config`."""
-    import numpy as np
-    import torch
-
-    from ..cache.build import torch_threads_per_worker
-    from ..rig import load_frame_images
-    from ..stereo.pipeline import PriorBuilder
-
     previous = torch.get_num_threads()
     torch.set_num_threads(torch_threads_per_worker(1))
     try:
@@ -66,13 +69,6 @@ def _measure(rig: Any, config: Any, frames: int) -> dict[str, Any]:
 
 def run(fast: bool = False) -> dict[str, Any]:
     """Seconds per six-camera frame of RAFT-family matchers (random weights) through the prior pipeline."""
-    import torch
-
-    from ..readers.detect import load_rig
-    from ..rig import read_rig_json
-    from ..stereo.pipeline import PriorConfig
-    from ..synth.sequence import write_synth
-
     frames = 2 if fast else 3
     names = list(MODELS)
     result: dict[str, Any] = {"load_average_before": [round(x, 2) for x in os.getloadavg()], "frames": frames,
@@ -87,12 +83,12 @@ def run(fast: bool = False) -> dict[str, Any]:
             torch.manual_seed(0)
             ckpt = Path(tmp) / f"{name}.pt"
             torch.save(getattr(flow_models, name)().state_dict(), ckpt)
-            config = PriorConfig(matcher="torch", matcher_path=str(ckpt), matcher_arch=MODELS[name],
-                                 matcher_input_scale=1 / 127.5, matcher_flow_output=True)
+            config = PriorConfig.from_settings(matcher="torch", matcher_path=str(ckpt), matcher_arch=MODELS[name],
+                                               matcher_input_scale=1 / 127.5, matcher_flow_output=True)
             result["models"][name] = _measure(rig, config, frames)
         official = os.environ.get("SGDE_BENCH_RAFT_STEREO")
         if official:
-            config = PriorConfig(matcher="raft-stereo", matcher_path=official)
+            config = PriorConfig.from_settings(matcher="raft-stereo", matcher_path=official)
             result["models"]["raft-stereo (official)"] = _measure(rig, config, frames)
     result["peak_rss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 2)
     result["load_average_after"] = [round(x, 2) for x in os.getloadavg()]

@@ -14,6 +14,7 @@ the true overlap and accuracy. Thresholds are tuned on other seeds (100-109), ne
 
 from __future__ import annotations
 
+import math
 import os
 import statistics
 import tempfile
@@ -21,22 +22,28 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
+
+from ..rig import attach_files, read_rig_json
+from ..stereo.evaluate import PriorEvaluator
+from ..stereo.pipeline import PriorBuilder, PriorConfig
+from ..synth.sequence import synth_sequence, write_synth
+
 TARGETS = {"seconds_per_frame": 0.2, "total_over_matcher": 1.5}
 RANDOM_TARGETS = {"mean_coverage": 0.6, "worst_coverage": 0.45, "max_abs_rel": 0.03}
 REPORT_SEEDS = tuple(range(10))
 TUNING_SEEDS = tuple(range(100, 110))
 
 
-def random_rig_accuracy(seed: int, config: Any = None, frames: int = 2, scale: float = 1.0) -> dict[str, Any]:
+def random_rig_accuracy(
+    seed: int, config: PriorConfig | None = None, frames: int = 2, scale: float = 1.0
+) -> dict[str, Any]:
     """Prior of one random rig (true extrinsics) against its ground truth: overall and per-pair rows."""
-    from ..stereo.evaluate import PriorEvaluator
-    from ..stereo.pipeline import PriorBuilder, PriorConfig
-    from ..synth.sequence import synth_sequence
-
     config = config or PriorConfig()
     seq = synth_sequence("random", frames, seed=seed, scale=scale, pose_noise_deg=0.0, pose_noise_m=0.0)
     builder = PriorBuilder(seq.rig_true, config)
-    evaluator = PriorEvaluator(seq.rig_true, config.max_depth)
+    evaluator = PriorEvaluator(seq.rig_true, config.geometry.max_depth)
     seconds = 0.0
     for fid, images in seq.images.items():
         t0 = time.perf_counter()
@@ -57,11 +64,9 @@ def random_rig_accuracy(seed: int, config: Any = None, frames: int = 2, scale: f
     }
 
 
-def random_rigs(seeds: tuple[int, ...] = REPORT_SEEDS, config: Any = None, frames: int = 2,
+def random_rigs(seeds: tuple[int, ...] = REPORT_SEEDS, config: PriorConfig | None = None, frames: int = 2,
                 scale: float = 1.0) -> dict[str, Any]:
     """Mean and worst coverage and accuracy of the prior over random rigs (one row per seed)."""
-    import math
-
     rows = [random_rig_accuracy(s, config, frames, scale) for s in seeds]
     cov = [r["coverage"] for r in rows if math.isfinite(r["coverage"])]
     rel = [r["abs_rel"] for r in rows if math.isfinite(r["abs_rel"])]
@@ -84,10 +89,8 @@ def random_rigs(seeds: tuple[int, ...] = REPORT_SEEDS, config: Any = None, frame
     return out
 
 
-def _matcher_only(builder: Any, images: dict) -> float:
+def _matcher_only(builder: PriorBuilder, images: dict[str, np.ndarray]) -> float:
     """Wall seconds of the matcher alone on the frame's rectified pairs (both references, as in build)."""
-    import numpy as np
-
     grey = builder._prepare(images)
     crops = []
     for plan in builder.plans:
@@ -105,13 +108,6 @@ def _matcher_only(builder: Any, images: dict) -> float:
 
 def run(fast: bool = False) -> dict[str, Any]:
     """Render the rig (not timed), then time PriorBuilder.build per frame; fast: 1 frame, 3 repeats."""
-    import cv2
-
-    from ..rig import attach_files, read_rig_json
-    from ..stereo.evaluate import PriorEvaluator
-    from ..stereo.pipeline import PriorBuilder, PriorConfig
-    from ..synth.sequence import write_synth
-
     frames, repeats = (1, 3) if fast else (3, 5)
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="sgde-bench-prior-") as tmp:
@@ -128,7 +124,7 @@ def run(fast: bool = False) -> dict[str, Any]:
     setup_s = time.perf_counter() - t0
 
     wall, cpu, parts, match_only = [], [], [], []
-    evaluator = PriorEvaluator(rig, config.max_depth)
+    evaluator = PriorEvaluator(rig, config.geometry.max_depth)
     for i, imgs in enumerate(images):
         builder.build(imgs)  # warm-up
         for _ in range(repeats):
@@ -149,7 +145,7 @@ def run(fast: bool = False) -> dict[str, Any]:
     result: dict[str, Any] = {
         "rig": "synthetic nuscenes, 6 x 1600x900, true extrinsics",
         "pairs": len(builder.plans),
-        "scale": config.scale,
+        "scale": config.geometry.scale,
         "frames": frames,
         "repeats_per_frame": repeats,
         "opencv_threads": cv2.getNumThreads(),

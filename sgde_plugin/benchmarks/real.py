@@ -15,21 +15,21 @@ import os
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..errors import InputError
-
-if TYPE_CHECKING:  # types only: `sgde bench` loads the prior pipeline when this benchmark runs
-    from ..rig import Rig
-    from ..stereo.pipeline import PriorConfig
+from ..readers.detect import load_rig
+from ..rig import Rig, read_rig_json
+from ..stereo.config import PriorConfig
+from ..stereo.evaluate import PriorEvaluator
+from ..stereo.pipeline import PriorBuilder
+from ..tables import format_table
 
 COLUMNS = ("abs_rel", "sq_rel", "rmse", "a1", "n_prior", "coverage", "n_overlap")
 
 
 def _pose_source(rig: Rig, path: str) -> Rig:
     """The scene's rig with the extrinsics of the sgde-rig/1 file at `path` (every camera must be there)."""
-    from ..rig import read_rig_json
-
     other = read_rig_json(path)
     missing = [c for c in rig.camera_names if c not in other.camera_names]
     if missing:
@@ -51,13 +51,10 @@ def _truth(rig: Rig) -> tuple[dict, dict, float]:
 
 def evaluate_source(rig: Rig, rig_overlap: Rig, images: dict, gts: dict, masks: dict, config: PriorConfig) -> dict:
     """Build the priors of every frame with `rig`'s extrinsics and score them (overlap from `rig_overlap`)."""
-    from ..stereo.evaluate import PriorEvaluator
-    from ..stereo.pipeline import PriorBuilder
-
     t0 = time.perf_counter()
     builder = PriorBuilder(rig, config)
     setup = time.perf_counter() - t0
-    evaluator = PriorEvaluator(rig_overlap, config.max_depth, sparse_truth=True)
+    evaluator = PriorEvaluator(rig_overlap, config.geometry.max_depth, sparse_truth=True)
     build = score = 0.0
     for fid, frame_images in images.items():
         t1 = time.perf_counter()
@@ -76,9 +73,6 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
     """The benchmark's report: {"sources": {name: evaluation report}, "seconds": ..., "load_avg": ...}.
 
     `max_frames` keeps the first frames only (for quick checks; the benchmark uses all)."""
-    from ..readers.detect import load_rig
-    from ..stereo.pipeline import PriorConfig
-
     t_start = time.perf_counter()
     config = config or PriorConfig()
     rig = load_rig(path)
@@ -92,7 +86,7 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
     reports = {name: evaluate_source(src, rig, images, gts, masks, config) for name, src in sources.items()}
     return {
         "dir": str(path), "frames": len(rig.frames), "cameras": rig.camera_names,
-        "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.max_depth, "config": config.to_dict(),
+        "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.geometry.max_depth, "config": config.to_dict(),
         "sources": reports,
         "seconds": {"lidar_truth": round(t_truth, 2), "images": round(t_images, 2),
                     "total": round(time.perf_counter() - t_start, 2)},
@@ -102,8 +96,6 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
 
 def report_tables(report: dict[str, Any]) -> str:
     """The printed tables: one block per pose source (cameras, pairs, overall) and the times."""
-    from ..tables import format_table
-
     def row(key: str, name: str, g: dict) -> dict:
         return {key: name, **{c: g[c] for c in COLUMNS}}
 

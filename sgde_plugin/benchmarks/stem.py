@@ -13,6 +13,7 @@ import copy
 import os
 import statistics
 import time
+from collections.abc import Callable
 
 import torch
 import torchvision
@@ -24,7 +25,7 @@ TARGET_FLOPS_PCT = 0.5
 TARGET_RATIO = 1.03
 
 
-def count_flops(fn, *args) -> int:
+def count_flops(fn: Callable[..., object], *args: torch.Tensor) -> int:
     """Total FLOPs of one call of ``fn(*args)`` as counted by torch's FLOP counter."""
     with FlopCounterMode(display=False) as counter:
         fn(*args)

@@ -10,16 +10,19 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
+
+from ..synth.presets import PRESETS, preset_cameras
+from ..synth.render import ray_tiles, render, rig_lod, torch_threads
+from ..synth.sequence import default_workers
+from ..synth.truth import cross_view_check
+from ..synth.world import build_world
 
 TARGETS_S = {("nuscenes", 1.0): 10.0, ("nuscenes", 0.5): 3.0}
 
 
 def _frame_seconds(world, cameras, time_s: float, workers: int) -> tuple[float, float, dict]:
     """Wall and CPU seconds to render one frame of all cameras, `workers` cameras at a time, and the renders."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from ..synth.render import ray_tiles, render, rig_lod, torch_threads
-
     for cam in cameras:  # ray grids are cached per camera model; build them outside the timing
         ray_tiles(cam.intrinsics, 1)
     pose = world.ego_pose(time_s)
@@ -32,8 +35,6 @@ def _frame_seconds(world, cameras, time_s: float, workers: int) -> tuple[float, 
 
 def _worst_pair(world, cameras, time_s: float, renders: dict) -> float:
     """Lowest cross-view agreement over the adjacent pairs (cameras come in ring order), both directions."""
-    from ..synth.truth import cross_view_check
-
     ring = list(cameras)
     pose = world.ego_pose(time_s)
     worst = 1.0
@@ -46,10 +47,6 @@ def _worst_pair(world, cameras, time_s: float, renders: dict) -> float:
 
 def run(fast: bool = False) -> dict:
     """Time one frame per preset and scale; `fast` times scale 0.5 only and skips the truth check."""
-    from ..synth.presets import PRESETS, preset_cameras
-    from ..synth.sequence import default_workers
-    from ..synth.world import build_world
-
     workers = default_workers()
     t0 = time.perf_counter()
     world = build_world(0)

@@ -46,6 +46,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from ..cache.resample import resize_depth, resize_matrix, warp_image
 from ..cameras import Camera
 from ..metrics import depth_metrics
 from ..nn import DepthNet
@@ -122,7 +123,7 @@ def _pipeline_priors(cameras: list[Camera], images: np.ndarray) -> np.ndarray:
     """Priors [F,N,H,W] from the project's prior pipeline (SGBM on rectified adjacent pairs)."""
     names = tuple(c.name for c in cameras)
     rig = Rig(tuple(cameras), ring_pairs(names), (Frame("0", 0),), names)
-    builder = PriorBuilder(rig, PriorConfig(scale=1.0))
+    builder = PriorBuilder(rig, PriorConfig.from_settings(scale=1.0))
     out = np.zeros(images.shape[:-1], np.float32)
     for k in range(images.shape[0]):
         maps = builder.build({c.name: images[k, i] for i, c in enumerate(cameras)})
@@ -147,8 +148,6 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
     the world and, for the frames in ``context_ids`` (default all), the images ``context_s`` seconds
     before and after (the temporal sources) with their poses.
     """
-    from ..cache.resample import resize_depth, resize_matrix, warp_image
-
     h, w = size
     rh, rw = render_factor * h, render_factor * w
     if prior not in ("pipeline", "overlap-noise"):
@@ -198,8 +197,6 @@ def load_sequence(frame_ids: list[int], size: tuple[int, int], seed: int = 0, fr
 def _add_contexts(seq: RigSequence, times: list[float], wanted: list[bool], context_s: float,
                   render_cams: list[Camera], shot: Shot, ego_pose: Callable[[float], np.ndarray]) -> None:
     """Fill the sequence's camera poses and, for the wanted frames, the temporal context images and poses."""
-    from ..cache.resample import resize_matrix, warp_image
-
     n = len(render_cams)
     h, w = seq.images.shape[2:4]
     shrink = resize_matrix((render_cams[0].height, render_cams[0].width), (h, w))

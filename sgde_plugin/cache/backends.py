@@ -9,6 +9,7 @@ from typing import Any
 import zarr
 import zarr.storage
 from zarr.abc.store import Store
+from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync
 
 from ..errors import InputError
@@ -88,8 +89,6 @@ def list_prefix(store: Store, prefix: str) -> set[str]:
 
 def get_bytes(store: Store, key: str) -> bytes | None:
     """Raw bytes of one key of an open store (None when absent)."""
-    from zarr.core.buffer import default_buffer_prototype
-
     buf = sync(store.get(key, prototype=default_buffer_prototype()))
     return None if buf is None else buf.to_bytes()
 

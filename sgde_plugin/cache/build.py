@@ -26,11 +26,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from ..errors import InputError
 from ..progress import progress
 from ..rig import Rig, load_frame_images
+from ..stereo.config import PriorConfig
+from ..stereo.pipeline import PriorBuilder
 from .backends import Location, location_name
 from .creation import prepare_scene, remove_partial_files
 from .fingerprints import ConfigLike, config_document, fingerprint_parts
@@ -47,7 +52,7 @@ class PriorCompute:
     def __init__(self, rig: Rig, config: ConfigLike):
         self.rig = rig
         self.config = config
-        self._builder: Any = None
+        self._builder: PriorBuilder | None = None
         self._masks: dict[str, np.ndarray] | None = None
         self.last_warning: str | None = None  # the builder's note when the last frame's prior came out empty
 
@@ -57,8 +62,6 @@ class PriorCompute:
     def __call__(self, frame_id: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Priors of all cameras of one frame."""
         if self._builder is None:
-            from ..stereo.pipeline import PriorBuilder
-
             self._builder = PriorBuilder(self.rig, self.config)
             masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
             self._masks = {c: m for c, m in masks.items() if m is not None} or None
@@ -127,29 +130,16 @@ def default_scene_name(rig: Rig) -> str:
 
 def limit_threads(n: int, torch_n: int | None = None) -> dict[str, int]:
     """Set OpenCV's thread count to n and torch's to torch_n (default n); returns the previous values."""
-    previous = {}
-    try:
-        import cv2
-
-        previous["cv2"] = cv2.getNumThreads()
-        cv2.setNumThreads(n)
-    except ImportError:  # pragma: no cover - cv2 is a dependency
-        pass
-    if "torch" in sys.modules:
-        torch = sys.modules["torch"]
-        previous["torch"] = torch.get_num_threads()
-        torch.set_num_threads(n if torch_n is None else torch_n)
+    previous = {"cv2": cv2.getNumThreads(), "torch": torch.get_num_threads()}
+    cv2.setNumThreads(n)
+    torch.set_num_threads(n if torch_n is None else torch_n)
     return previous
 
 
 def _restore_threads(previous: Mapping[str, int]) -> None:
     if "cv2" in previous:
-        import cv2
-
         cv2.setNumThreads(previous["cv2"])
     if "torch" in previous:
-        import torch
-
         torch.set_num_threads(previous["torch"])
 
 
@@ -329,8 +319,6 @@ def build_cache(
     if engine not in ENGINES:
         raise InputError(None, "--engine", f"unknown engine {engine!r} (choose from {', '.join(ENGINES)})")
     if config is None and compute is None:
-        from ..stereo.pipeline import PriorConfig
-
         config = PriorConfig()
     if config is None:
         config = {}
@@ -372,7 +360,7 @@ def build_cache(
 class _Run:
     """Progress of one build: frames built, pixels, completion times, warnings; raises a worker's input error."""
 
-    def __init__(self, start: float, bar: Any, frame_ids: list[str],
+    def __init__(self, start: float, bar: tqdm, frame_ids: list[str],
                  on_warning: Callable[[str, str], None] | None, strict: bool):
         self.start, self.bar, self.frame_ids = start, bar, frame_ids
         self.on_warning, self.strict = on_warning, strict
@@ -421,9 +409,9 @@ def default_workers(config: ConfigLike = None) -> int:
     """Worker processes by default: one per CPU; a learned matcher: as many as memory allows (2 GiB each),
     and one on a GPU (torch then uses the CPUs inside that worker)."""
     cpus = usable_cpus()
-    if not getattr(config, "learned", False):
+    if not getattr(config, "learned", False):  # None or a fingerprint mapping: SGBM
         return cpus
-    if getattr(config, "device", "cpu") != "cpu":
+    if config.matcher.device != "cpu":  # a PriorConfig
         return 1
     memory = available_memory()
     return cpus if memory is None else max(1, min(cpus, memory // LEARNED_WORKER_BYTES))

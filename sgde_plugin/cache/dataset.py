@@ -18,6 +18,7 @@ from torch.utils.data import Dataset
 
 from ..errors import InputError
 from ..rig import Rig
+from .backends import Location
 from .resample import as_affine, resize_matrix, warp_depth_affine, warp_image
 from .store import PriorCache, check_size
 
@@ -38,7 +39,7 @@ class PriorDataset(Dataset):
     def __init__(
         self,
         rig: Rig,
-        cache: Any,
+        cache: PriorCache | Location,
         size: tuple[int, int],
         *,
         cameras: Sequence[str] | None = None,

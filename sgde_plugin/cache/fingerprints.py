@@ -12,22 +12,20 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, Union
+from typing import Any, Union
 
 import numpy as np
 
-if TYPE_CHECKING:  # types only: the cache reader does not load the stereo pipeline (OpenCV)
-    from ..rig import Rig
-    from ..stereo.pipeline import PriorConfig
-
+from ..rig import Rig
+from ..stereo.config import PRIOR_ALGO_VERSION, PriorConfig
 
 # A PriorConfig, its `to_dict()` mapping, or None for the defaults.
-ConfigLike = Union["PriorConfig", Mapping[str, Any], None]  # noqa: UP007 - a forward reference
+ConfigLike = Union[PriorConfig, Mapping[str, Any], None]  # noqa: UP007 - a runtime alias on Python 3.10
 CACHE_FORMAT = "sgde-prior-cache/1"
 DIGEST_CHARS = 20
 
 
-def _default(obj: Any) -> Any:
+def _default(obj: object) -> object:
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, np.generic):
@@ -37,12 +35,12 @@ def _default(obj: Any) -> Any:
     return str(obj)
 
 
-def canonical_json(obj: Any) -> str:
+def canonical_json(obj: object) -> str:
     """Deterministic JSON text (sorted keys, no spaces) used for hashing."""
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_default)
 
 
-def digest(obj: Any) -> str:
+def digest(obj: object) -> str:
     """Short SHA-256 hex digest of an object's canonical JSON."""
     return hashlib.sha256(canonical_json(obj).encode("utf-8")).hexdigest()[:DIGEST_CHARS]
 
@@ -50,8 +48,6 @@ def digest(obj: Any) -> str:
 def config_dict(config: ConfigLike) -> dict[str, Any]:
     """A PriorConfig (anything with `to_dict()`) or a mapping, as a plain JSON-able dict."""
     if config is None:
-        from ..stereo.pipeline import PriorConfig  # lazy: reading a cache does not load the stereo pipeline
-
         config = PriorConfig()
     if hasattr(config, "to_dict"):
         config = config.to_dict()
@@ -62,8 +58,6 @@ def config_dict(config: ConfigLike) -> dict[str, Any]:
 
 def default_algo_version() -> str:
     """The prior algorithm version of the installed code (PRIOR_ALGO_VERSION)."""
-    from ..stereo.pipeline import PRIOR_ALGO_VERSION  # lazy, as above
-
     return str(PRIOR_ALGO_VERSION)
 
 

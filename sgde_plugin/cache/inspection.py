@@ -6,6 +6,8 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+import zarr
+from zarr.abc.store import Store
 
 from .backends import Location, location_name, open_root, open_store, store_keys
 from .fingerprints import CACHE_FORMAT, digest
@@ -80,7 +82,7 @@ def _problem(scene: str, frame: str, camera: str, array: str, problem: str) -> d
     return {"scene": scene, "frame": frame, "camera": camera, "array": array, "problem": problem}
 
 
-def _root_problems(root: Any, names: list[str], broken: Mapping[str, str]) -> list[dict[str, str]]:
+def _root_problems(root: zarr.Group, names: list[str], broken: Mapping[str, str]) -> list[dict[str, str]]:
     """Problems of the cache as a whole: root attributes, no scene at all, scenes that do not open."""
     out = [_problem(name, "-", "-", "zarr.json", why) for name, why in broken.items()]
     rattrs = dict(root.attrs)
@@ -112,7 +114,7 @@ def verify_cache(location: Location, storage_options: Mapping[str, Any] | None =
     }
 
 
-def _verify_scene(store: Any, group: Any, name: str, tally: dict[str, int]) -> list[dict[str, str]]:
+def _verify_scene(store: Store, group: zarr.Group, name: str, tally: dict[str, int]) -> list[dict[str, str]]:
     """Problems of one scene; `tally` counts chunks read and frames checked."""
     attrs = dict(group.attrs)
     if not attrs.get("ready"):

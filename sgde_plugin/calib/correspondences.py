@@ -13,7 +13,7 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..progress import progress
-from .features import Keypoints, load_loftr, loftr_match, match_descriptors, sift_features
+from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_descriptors, sift_features
 from .outliers import epipolar_angle_deg, essential_inliers
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
 from .views import VirtualView, overlap_view
@@ -43,6 +43,8 @@ class MatchConfig:
     loftr_sigma_px: float = 0.5
     fisheye_views: bool = True
     pinhole_views: bool = True
+    view_upsample: float = 1.0
+    view_pair_scale: str = "min"
     cross_time: bool = True
     seed: int = 0
 
@@ -274,6 +276,9 @@ def detect_features(
                     feats[(t, name, o)] = kp
             for slot, (o, view) in enumerate(views.items()):
                 feats[(t, name, o)] = _view_features(cam, view, picture, static, slot, cfg)
+        if cfg.cross_time and T > 1:
+            for o in [*views, *raw[:1]]:
+                mark_fixed([feats[(t, name, o)] for t in range(T)])
     timings.add("features", t0)
     return feats
 
@@ -288,18 +293,20 @@ def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str]
         return {}
     views = {}
     for o in neighbours:
-        view = overlap_view(cam, grids[(name, o)]) if fisheye else overlap_view(cam, grids[(name, o)], other=cams[o],
-                                                                                 crop=True)
+        view = (overlap_view(cam, grids[(name, o)], upsample=cfg.view_upsample) if fisheye else
+                overlap_view(cam, grids[(name, o)], other=cams[o], crop=True, upsample=cfg.view_upsample,
+                             pair_scale=cfg.view_pair_scale))
         if view is not None:
             views[o] = view
     return views
 
 
 def _sift_tentative(feats: dict, grids: dict, a: str, b: str, t: int, t2: int, cfg: MatchConfig) -> Tentative:
-    """Mutual ratio-test matches of the keypoints inside each other's predicted overlap."""
+    """Mutual ratio-test matches of the keypoints inside each other's predicted overlap; across time without
+    the keypoints that stay at one pixel (`mark_fixed`)."""
     fa, fb = feats[(t, a, b)], feats[(t2, b, a)]
-    sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv))
-    sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv))
+    sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | ~fa.fixed))
+    sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv) & ((t == t2) | ~fb.fixed))
     ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
     return Tentative(sa.uv[ia], sb.uv[ib], np.maximum(cfg.sigma_floor_px, sa.size[ia] * cfg.sigma_per_size),
                      np.maximum(cfg.sigma_floor_px, sb.size[ib] * cfg.sigma_per_size), sa.index[ia], sb.index[ib])
@@ -375,7 +382,8 @@ def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np
     kv = sift_features(view.warp(image), mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
     uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
     scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])
-    return Keypoints(uv[ok], kv.desc[ok], kv.size[ok] * scale, kv.index[ok] + (slot + 1) * _VIEW_INDEX_OFFSET)
+    return Keypoints(uv[ok], kv.desc[ok], kv.size[ok] * scale, kv.index[ok] + (slot + 1) * _VIEW_INDEX_OFFSET,
+                     kv.fixed[ok])
 
 
 def _box(grid: OverlapGrid, t: int, t2: int, cam: Camera) -> tuple[int, int, int, int] | None:

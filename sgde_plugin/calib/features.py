@@ -4,35 +4,63 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+import torch
 
 from ..errors import InputError
+
+if TYPE_CHECKING:  # kornia's feature zoo loads only for LoFTR
+    from kornia.feature import LoFTR
 
 
 @dataclass
 class Keypoints:
     """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels,
-    and each keypoint's index in its image's full list (kept through `subset`)."""
+    each keypoint's index in its image's full list (kept through `subset`), and `fixed`: True where the
+    same keypoint sits at the same pixel in another frame of the camera (see `mark_fixed`)."""
 
     uv: np.ndarray
     desc: np.ndarray
     size: np.ndarray | None = None
     index: np.ndarray | None = None
+    fixed: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.size is None:
             self.size = np.ones(self.uv.shape[0])
         if self.index is None:
             self.index = np.arange(self.uv.shape[0])
+        if self.fixed is None:
+            self.fixed = np.zeros(self.uv.shape[0], dtype=bool)
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
 
     def subset(self, keep: np.ndarray) -> Keypoints:
         """The keypoints selected by a boolean mask or index array."""
-        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep])
+        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep], self.fixed[keep])
+
+
+def mark_fixed(frames: list[Keypoints], radius_px: float = 1.0, min_cosine: float = 0.9) -> None:
+    """Set `fixed` on the keypoints of one camera's frames that recur at the same pixel (within `radius_px`,
+    descriptor cosine >= `min_cosine`) in another frame: texture that moves with the car (a near object
+    driving along, the ego body) or lies at infinity. Across time such a match looks like a static point at
+    a wrong depth, so cross-time matching leaves them out."""
+    from scipy.spatial import cKDTree
+
+    trees = [cKDTree(k.uv) if len(k) else None for k in frames]
+    for i, k in enumerate(frames):
+        for j, tree in enumerate(trees):
+            if j == i or tree is None or not len(k):
+                continue
+            for a, near in enumerate(tree.query_ball_point(k.uv, radius_px)):
+                if near and not k.fixed[a]:
+                    d = frames[j].desc[near]
+                    cos = d @ k.desc[a] / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(k.desc[a]), 1e-12)
+                    k.fixed[a] = bool(cos.max() >= min_cosine)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -91,14 +119,13 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8
     return ia[mutual], ib[mutual]
 
 
-def load_loftr(weights: str | Path | None):
+def load_loftr(weights: str | Path | None) -> LoFTR:
     """A kornia LoFTR built without downloading, weights from a local checkpoint (torch.load weights_only).
 
     The file may hold a plain state dict or a Lightning-style {"state_dict": ...}. A missing path or a
     file that does not fit the model is an InputError.
     """
-    import torch
-    from kornia.feature import LoFTR
+    from kornia.feature import LoFTR  # kornia's feature zoo loads only for LoFTR
 
     if weights is None:
         raise InputError(None, "--loftr-weights", "LoFTR needs a local checkpoint path (nothing is downloaded)")
@@ -131,11 +158,10 @@ def _box_crop(gray: np.ndarray, box: tuple[int, int, int, int] | None) -> tuple[
 
 
 def loftr_match(
-    model, image_a: np.ndarray, image_b: np.ndarray, box_a=None, box_b=None, min_confidence: float = 0.5
+    model: LoFTR, image_a: np.ndarray, image_b: np.ndarray, box_a: tuple[int, int, int, int] | None = None,
+    box_b: tuple[int, int, int, int] | None = None, min_confidence: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
     """LoFTR matches between two images, optionally inside boxes (x0, y0, x1, y1): native pixels (N, 2) x 2."""
-    import torch
-
     ga, xa, ya = _box_crop(to_gray(image_a), box_a)
     gb, xb, yb = _box_crop(to_gray(image_b), box_b)
     if min(ga.shape) < 16 or min(gb.shape) < 16:

@@ -33,7 +33,14 @@ from scipy.sparse.csgraph import connected_components
 
 from ..cameras import Camera
 from ..geometry import rotation_angle_deg
-from .ba import AdjustConfig, AdjustResult, Observations, robust_adjust, select_observations
+from .ba import (
+    AdjustConfig,
+    AdjustResult,
+    Observations,
+    relative_rotation_sigma_deg,
+    robust_adjust,
+    select_observations,
+)
 from .correspondences import PairMatches
 from .outliers import rotation_to_z
 from .overlap import pixels_per_radian
@@ -59,6 +66,7 @@ class MethodResult:
     pair_used_matches: dict[tuple[str, str], int] = field(default_factory=dict)
     rms_before_px: float = float("nan")
     rms_after_px: float = float("nan")
+    pair_rotation_sigma_deg: dict[tuple[str, str], float] = field(default_factory=dict)
 
 
 def spanning_tree(names: Sequence[str], pairs: Sequence[tuple[str, str]], root: str) -> list[tuple[str, str]]:
@@ -253,8 +261,11 @@ def run_glc(
     cfg = config or AdjustConfig()
     ext, res, rms, used = _adjust_cameras(cameras, matches, ego_to_world, reference, cfg)
     pairs = [(m.cam_a, m.cam_b) for m in matches]
+    index = {c.name: i for i, c in enumerate(cameras)}
+    sigma = {} if res.rotation_cov is None else {
+        (a, b): relative_rotation_sigma_deg(res.rotation_cov, index[a], index[b]) for a, b in pairs}
     return MethodResult(ext, res.iterations, res.converged, res.message, pairs, dict(zip(pairs, rms)),
-                        dict(zip(pairs, used)), res.initial_rms_px, res.final_rms_px)
+                        dict(zip(pairs, used)), res.initial_rms_px, res.final_rms_px, sigma)
 
 
 def relative_pose_from_rays(rays_a: np.ndarray, rays_b: np.ndarray, focal_px: float,

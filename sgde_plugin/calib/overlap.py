@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 
@@ -53,8 +54,6 @@ class OverlapGrid:
 
     def any_mask(self, width: int, height: int) -> np.ndarray:
         """Full-resolution uint8 mask (255 = maybe overlapping in some frame pair) for feature detection."""
-        import cv2
-
         coarse = self.mask.any(axis=(0, 1)).astype(np.uint8) * 255
         return cv2.resize(coarse, (width, height), interpolation=cv2.INTER_NEAREST)
 

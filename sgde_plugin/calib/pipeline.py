@@ -108,6 +108,7 @@ def _pair_rows(matches: list[PairMatches], used: list[PairMatches], result: Meth
             "used_in_adjustment": bool(in_ba and result.pair_used_matches.get(key, 0) > 0),
             "adjusted_correspondences": int(result.pair_used_matches.get(key, 0)) if in_ba else 0,
             "rms_px": float(rms) if rms is not None and np.isfinite(rms) else None,
+            "rotation_sigma_deg": _num(result.pair_rotation_sigma_deg.get(key)) if result is not None else None,
             "translation_change_m": float(moved.get(key, 0.0)),
             "observation_pairs": [[o.t, o.t2, o.inliers] for o in pm.observation_pairs if o.tentative > 0],
         })
@@ -268,7 +269,7 @@ def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], e
     setup.timings.add("adjustment", t0)
     observed = [(u.cam_a, u.cam_b) for u in used if u.view_pairs > 0]
     verdict = check_result(result.converged, result.iterations, start, {**start, **result.sensor_to_ego}, observed,
-                           setup.rules)
+                           setup.rules, result.pair_rotation_sigma_deg)
     return Judged(verdict, result, matches, used)
 
 

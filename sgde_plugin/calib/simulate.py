@@ -6,10 +6,13 @@ at frame t', and both pixels get Gaussian noise before they are turned back into
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-from ..cameras import Camera
-from ..geometry import rodrigues
+from ..cameras import Camera, Pinhole
+from ..geometry import camera_mount, rodrigues
+from ..rig import Frame, Rig, ring_pairs
+from ..stereo.rectify import torch_threads
 from .ba import Observations
 
 
@@ -119,8 +122,6 @@ def simulate_observations(
 
 def noise_texture(size: int = 1024, seed: int = 0) -> np.ndarray:
     """A grey uint8 texture of blurred noise over several scales (rich in SIFT blobs, not periodic)."""
-    import cv2
-
     rng = np.random.default_rng(seed)
     tex = np.zeros((size, size), np.float32)
     for sigma, weight in ((1.5, 0.6), (3.0, 1.0), (6.0, 1.0), (12.0, 0.8)):
@@ -144,10 +145,6 @@ def render_box_world(
     A fast stand-in for the synthetic street for calibration tests: every ray hits a textured plane,
     each plane maps its own texture (from `textures`, cycled) by its two in-plane world coordinates.
     """
-    import cv2
-
-    from ..stereo.rectify import torch_threads
-
     with torch_threads(1):
         rays, valid = camera.intrinsics.ray_grid()
     rays, valid = rays.numpy(), valid.numpy()
@@ -192,15 +189,11 @@ def box_world_rig(
     noise_m: float = 0.05,
     step_m: float = 1.0,
     seed: int = 0,
-):
+) -> tuple[Rig, Rig, dict[str, dict[str, np.ndarray]]]:
     """A ring of pinholes driving through the textured box: (true rig, perturbed rig, images[frame][camera]).
 
     The perturbed rig tags itself like a synthetic preset (extra["synth"]), so beta is BETA_SYNTH.
     """
-    from ..cameras import Pinhole
-    from ..geometry import camera_mount
-    from ..rig import Frame, Rig, ring_pairs
-
     f = (width / 2) / np.tan(np.radians(hfov_deg) / 2)
     K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
     cams = []

@@ -10,6 +10,8 @@ import platform
 import sys
 import time
 
+from ..errors import InputError
+
 HELP = ("run benchmarks (synth, readers, prior, calibrate, stem, train-effect, cache, export, capture, learned) and "
         "write one JSON; "
         "`sgde bench real DIR [--rig RIG.json ...]` scores the prior on real frames against LiDAR")
@@ -86,7 +88,6 @@ def machine_description() -> dict:
 
 def run(args: argparse.Namespace) -> int:
     """Run the named (or all) benchmarks, print each result, optionally write the JSON."""
-    from ..errors import InputError
     from ..io import atomic_write_text
 
     if args.names[:1] == ["real"]:
@@ -127,7 +128,6 @@ def run(args: argparse.Namespace) -> int:
 def run_real_bench(args: argparse.Namespace) -> int:
     """`sgde bench real DIR [--rig RIG.json ...] [--preset P] [--config F] [--json OUT]`: tables, optionally JSON."""
     from ..benchmarks.real import report_tables, run_real
-    from ..errors import InputError
     from ..io import atomic_write_text
 
     if len(args.names) != 2:

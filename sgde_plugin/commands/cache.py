@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+
+from ..tables import format_table
 
 HELP = "inspect a prior cache: info (scenes, frames, cameras, coverage, size, fingerprint) or verify (read all)"
 
@@ -24,8 +28,6 @@ def _size(n: float) -> str:
 
 def print_info(info: dict) -> None:
     """Human-readable `cache info`."""
-    from ..tables import format_table
-
     cfg = info.get("config", {}).get("config", {})
     settings = ", ".join(f"{k}={cfg[k]}" for k in ("matcher", "scale", "min_depth", "max_depth") if k in cfg)
     print(f"{info['location']}: {info['format']}, {len(info['scenes'])} scene(s), {_size(info['bytes'])}")
@@ -51,9 +53,6 @@ def print_info(info: dict) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print info, or verify and exit 2 when any chunk is bad or any frame is missing."""
-    import json
-    import sys
-
     from ..cache.inspection import cache_info, verify_cache
     from ..io import atomic_write_text
 

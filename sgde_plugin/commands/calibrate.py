@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
+from ..errors import InputError
+from ..tables import format_table
 from .options import integer, number
 
 HELP = "refine the extrinsics of a rig folder (GLC bundle adjustment) and write an sgde-rig/1 file"
@@ -39,8 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def parse_frames(text: str | None) -> slice | None:
     """'A:B', 'A:', ':B' or 'A' (one frame) -> slice; InputError otherwise."""
-    from ..errors import InputError
-
     if text is None:
         return None
     parts = text.split(":")
@@ -76,15 +78,10 @@ def summary_rows(block: dict) -> list[dict]:
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate, write the rig atomically, print the per-pair table and the verdict."""
-    import json
-    from pathlib import Path
-
     from ..calib import AcceptanceRules, calibrate, default_beta
-    from ..errors import InputError
     from ..io import atomic_write_text
     from ..readers.detect import load_rig
     from ..rig import write_rig_json
-    from ..tables import format_table
 
     frames = parse_frames(args.frames)
     if args.window < 1:

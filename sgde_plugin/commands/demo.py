@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
+from ..demo_settings import DemoSettings
+from ..errors import InputError
 from .options import integer, number
 
 HELP = "synthesise a rig, calibrate it, build and evaluate priors, train, export; writes DIR/report.md"
@@ -11,8 +14,6 @@ HELP = "synthesise a rig, calibrate it, build and evaluate priors, train, export
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `sgde demo` (defaults from `DemoSettings`)."""
-    from ..demo import DemoSettings
-
     d = DemoSettings()
     parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     parser.add_argument("--frames", type=integer(2, 10000), default=d.frames,
@@ -26,10 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the demo and print its summary."""
-    from pathlib import Path
-
-    from ..demo import DemoSettings, run_demo
-    from ..errors import InputError
+    from ..demo import run_demo
 
     if args.frames < 2:
         raise InputError(None, "--frames", "needs at least 2 frames (one is held out)")

@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import json
+import math
+from pathlib import Path
 
+from ..errors import InputError
+from ..tables import format_table
 from .options import number
 
 HELP = "evaluate cached depth priors against the rig folder's ground truth (accuracy and overlap coverage)"
@@ -31,9 +36,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _truth_rig(rig, dir_arg: str, truth: str | None):
     """The rig with the extrinsics that define the true overlap, and where they came from."""
-    from pathlib import Path
-
-    from ..errors import InputError
     from ..rig import read_rig_json
 
     path = Path(truth) if truth else Path(dir_arg) / "rig_true.json"
@@ -50,15 +52,11 @@ def _truth_rig(rig, dir_arg: str, truth: str | None):
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate every cached frame that has ground truth; print the tables; optionally write JSON."""
-    import json
-
     from ..cache import PriorCache
-    from ..errors import InputError
     from ..io import atomic_write_text
     from ..progress import progress
     from ..readers.detect import load_rig
     from ..stereo.evaluate import PriorEvaluator, report_rows
-    from ..tables import format_table
 
     rig = load_rig(args.dir)
     if args.masks:
@@ -118,8 +116,6 @@ def _cached_priors(cache, frame_id: str, cameras: list[str], min_confidence: flo
 
 def _plain(value):
     """JSON-safe copy: NaN -> null, NumPy scalars -> Python numbers."""
-    import math
-
     if isinstance(value, dict):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

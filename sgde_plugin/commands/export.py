@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..errors import InputError
 from .options import integer
 
 HELP = "export the R18 depth net or the BEVDepth-style depth branch to ONNX (optionally checked)"
@@ -50,7 +51,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Build the model, export it, check it when asked, print a summary."""
-    from ..errors import InputError
     from ..export.models import BUILDERS
     from ..export.parity import ParityError
     from ..export.workflow import export_spec

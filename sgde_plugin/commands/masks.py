@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from ..errors import InputError
+from ..tables import format_table
 
 HELP = "estimate each camera's static ego-body mask from a sequence (user masks in DIR/masks take precedence)"
 
@@ -18,15 +22,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Estimate (or take the user's) mask per camera, write them atomically, print a table."""
-    from pathlib import Path
-
     import numpy as np
 
-    from ..errors import InputError
     from ..io import write_image
     from ..masks import estimate_static_mask, spread_frames
     from ..readers.detect import load_rig
-    from ..tables import format_table
 
     if args.frames < 2:
         raise InputError(None, "--frames", "must be at least 2")

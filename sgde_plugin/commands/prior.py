@@ -3,13 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
+from ..errors import InputError
 from .options import integer, number
+
+if TYPE_CHECKING:  # the command loads the rig (and torch) only when it runs
+    from ..rig import Rig
 
 HELP = "compute the stereo depth prior of every frame into a zarr prior cache (resumable, parallel)"
 
 
-# Every PriorConfig field as an option (tests check that none is missing): name, type, help.
+# Every PriorConfig setting (flat name, stereo.config.SETTINGS) as an option (tests check that none is missing).
 # Defaults are None here: an option given on the command line wins over --config, which wins over --preset.
 SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("matcher", "str", "sgbm (default), raft-stereo (official checkpoint + the RAFT-Stereo checkout on PYTHONPATH), "
@@ -45,7 +52,9 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
     ("confidence_disparity_px", "float", "confidence x d / (d + this): small disparities are less sure (2)"),
     ("edge_jump_px", "float", "confidence x jump / local disparity range beyond this, 0 = off (0)"),
-    ("min_confidence", "float", "drop fused values less confident than this, 0-1 (0; real-camera presets 0.4)"),
+    ("min_confidence", "float", "drop fused values less confident than this, 0-1 (0; real-camera presets 0.2)"),
+    ("edge_depth_ratio", "float", "confidence falls from local depth ratio 1+r to 1+5r, 0 = off (0; real cameras 0.1)"),
+    ("edge_window_px", "int", "window of that depth ratio, source pixels (15)"),
     ("antialias", "bool", "low-pass each image before resampling it at --scale (no)"),
     ("normalize", "str", "photometric normalisation of each rectified pair: none, gain or local (none)"),
     ("normalize_sigma", "float", "local normalisation window (Gaussian sigma), rectified pixels (8)"),
@@ -61,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--masks", help="folder of static masks <camera>.png (e.g. from `sgde masks`) for the "
                         "cameras without a mask of their own")
     parser.add_argument("--preset", help="per-data-set settings: ddad, nuscenes, fisheye or synthetic")
-    parser.add_argument("--config", help="YAML file of prior settings (PriorConfig field names; may name a preset)")
+    parser.add_argument("--config", help="YAML file of prior settings (flat names or groups; may name a preset)")
     settings = parser.add_argument_group("prior settings (each overrides --config and --preset)")
     for name, kind, text in SETTING_OPTIONS:
         flag = "--" + name.replace("_", "-")
@@ -88,7 +97,6 @@ def settings_from_args(args: argparse.Namespace) -> dict:
     """The prior settings given on the command line (None = not given)."""
     import yaml
 
-    from ..errors import InputError
 
     values = {name: getattr(args, name, None) for name, _, _ in SETTING_OPTIONS}
     if getattr(args, "matcher_options", None):
@@ -110,11 +118,8 @@ def _scene_from_location(location: str) -> str | None:
     return parts[-1] if parts else None
 
 
-def load_rig_with_override(location: str, rig_json: str | None):
+def load_rig_with_override(location: str, rig_json: str | None) -> Rig:
     """The rig of DIR (images checked), with the cameras and pairs of --rig when given."""
-    from dataclasses import replace
-
-    from ..errors import InputError
     from ..readers.detect import load_rig
     from ..rig import read_rig_json
 
@@ -133,10 +138,7 @@ def load_rig_with_override(location: str, rig_json: str | None):
 
 def run(args: argparse.Namespace) -> int:
     """Build (or resume) the cache and print one summary line."""
-    import sys
-
     from ..cache.build import StrictWarningError, build_cache, default_scene_name, default_workers, sanitize_scene_name
-    from ..errors import InputError
     from ..stereo.presets import load_prior_config
 
     config = load_prior_config(args.config, args.preset, settings_from_args(args))

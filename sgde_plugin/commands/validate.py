@@ -3,6 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+from ..tables import format_table
+
+if TYPE_CHECKING:  # the command loads the rig (and torch) only when it runs
+    from ..rig import Rig
 
 HELP = "check a rig folder (sgde-rig/1 or a supported data set); exit 0 if valid, 2 with one line if not"
 
@@ -14,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="check image headers (sizes) only, instead of decoding every image, depth map and mask")
 
 
-def camera_rows(rig) -> list[dict]:
+def camera_rows(rig: Rig) -> list[dict]:
     """One table row per camera: model, size, field of view, mounting position and viewing direction."""
     import numpy as np
 
@@ -36,7 +42,7 @@ def camera_rows(rig) -> list[dict]:
     return rows
 
 
-def pair_rows(rig) -> list[dict]:
+def pair_rows(rig: Rig) -> list[dict]:
     """One table row per adjacent pair from the pair geometry."""
     from ..pairs import rig_pair_geometry
 
@@ -54,7 +60,7 @@ def pair_rows(rig) -> list[dict]:
     ]
 
 
-def image_files(rig) -> list:
+def image_files(rig: Rig) -> list:
     """Every image, depth map and mask file the rig refers to, in frame order."""
     files = []
     for frame in rig.frames:
@@ -68,7 +74,6 @@ def run(args: argparse.Namespace) -> int:
     from ..io import decode_check
     from ..progress import progress
     from ..readers.detect import load_rig
-    from ..tables import format_table
 
     rig = load_rig(args.dir, check_images=True)
     if not args.quick:

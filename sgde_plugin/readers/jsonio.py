@@ -7,7 +7,7 @@ import re
 from collections.abc import Callable, Iterator
 from collections.abc import Set as AbstractSet
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -41,11 +41,7 @@ def iter_json_array(
     is parsed. A truncated file or bad JSON is an InputError naming the element index.
     """
     decoder = json.JSONDecoder(object_pairs_hook=object_pairs_hook)
-    try:
-        f = open(path, encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(path, None, "file not found") from None
-    with f:
+    with _open_text(path) as f:
         buf = _read(f, path)
         eof = len(buf) < _CHUNK
         pos = _SEPARATOR.match(buf, 0).end()
@@ -82,7 +78,15 @@ def iter_json_array(
             yield value
 
 
-def _read(f: Any, path: Path) -> str:
+def _open_text(path: Path) -> TextIO:
+    """A UTF-8 text file opened for reading; InputError when it does not exist."""
+    try:
+        return open(path, encoding="utf-8")  # noqa: SIM115 - the caller closes it (with)
+    except FileNotFoundError:
+        raise InputError(path, None, "file not found") from None
+
+
+def _read(f: TextIO, path: Path) -> str:
     try:
         return f.read(_CHUNK)
     except UnicodeDecodeError as exc:
@@ -100,11 +104,7 @@ def _object_chunks(path: Path) -> Iterator[tuple[str, list[str]]]:
     a brace inside a string; a chunk where some '}' is not followed by `, {` (or the counts of
     braces differ) raises `_NotFlat`, so the caller can use the exact parser.
     """
-    try:
-        f = open(path, encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(path, None, "file not found") from None
-    with f:
+    with _open_text(path) as f:
         buf = _read(f, path)
         eof = len(buf) < _CHUNK
         start = _SEPARATOR.match(buf, 0).end()

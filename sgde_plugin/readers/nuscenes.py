@@ -247,15 +247,34 @@ class NuScenesTables:
 
     def rig(self, scene: str, check_images: bool = False) -> Rig:
         """The Rig of one loaded scene (name or token); `check_images` checks every file and size."""
-        sc = self._find_scene(scene)
-        rows = self._rows_by_scene.get(sc.token, [])
+        return _SceneRig(self, self._find_scene(scene), check_images).build()
+
+    def _find_scene(self, scene: str) -> _Scene:
+        """The loaded scene with this name or token."""
+        found = [s for s in self._scenes.values() if scene in (s.name, s.token)]
+        if not found:
+            raise InputError(self.dir / "scene.json", "name", f"no scene {scene!r} loaded")
+        return found[0]
+
+
+class _SceneRig:
+    """One scene's Rig assembled from the indexed tables (`NuScenesTables.rig`)."""
+
+    def __init__(self, tables: NuScenesTables, scene: _Scene, check_images: bool):
+        self.tables, self.sc, self.check_images = tables, scene, check_images
+        self.dir, self.root = tables.dir, tables.root
+
+    def build(self) -> Rig:
+        """The scene's Rig: cameras, key frames (or 12 Hz frames), per-camera captures, LiDAR sweeps."""
+        sc, check_images = self.sc, self.check_images
+        rows = self.tables._rows_by_scene.get(sc.token, [])
         by_channel: dict[str, list[tuple]] = {c: [] for c in (*RING, LIDAR)}
         for r in rows:
             by_channel[r[_CHANNEL]].append(r)
-        cameras = self._scene_cameras(sc, by_channel)
+        cameras = self._cameras(by_channel)
         key_rows = {(r[_SAMPLE], r[_CHANNEL]): r for r in rows if r[_KEY] is True}
-        keyframe_of = self._key_frames(sc, key_rows)
-        frames = _sweep_frames(by_channel, keyframe_of) if self.sweeps else list(keyframe_of.values())
+        keyframe_of = self._key_frames(key_rows)
+        frames = _sweep_frames(by_channel, keyframe_of) if self.tables.sweeps else list(keyframe_of.values())
         lidar_rows = sorted(by_channel[LIDAR], key=lambda r: r[_TIME])
         lidar_times = [r[_TIME] for r in lidar_rows]
 
@@ -272,28 +291,22 @@ class NuScenesTables:
             RING, self.root, extra={"scene": sc.name},
         )
 
-    def _find_scene(self, scene: str) -> _Scene:
-        """Stage 1 of `rig`: the loaded scene with this name or token."""
-        found = [s for s in self._scenes.values() if scene in (s.name, s.token)]
-        if not found:
-            raise InputError(self.dir / "scene.json", "name", f"no scene {scene!r} loaded")
-        return found[0]
-
-    def _scene_cameras(self, sc: _Scene, by_channel: dict[str, list[tuple]]) -> list[Camera]:
-        """Stage 2 of `rig`: one Camera per ring channel (its rows are sorted by time in place)."""
+    def _cameras(self, by_channel: dict[str, list[tuple]]) -> list[Camera]:
+        """One Camera per ring channel (its rows are sorted by time in place)."""
+        sc = self.sc
         data_path = self.dir / "sample_data.json"
         cameras = []
         for channel in RING:
             chan_rows = by_channel[channel]
             if not chan_rows:
                 raise InputError(data_path, f"scene {sc.name}", f"camera {channel} is missing (no key frames)")
-            cameras.append(self._camera(sc, channel, chan_rows))
+            cameras.append(self._camera(channel, chan_rows))
             chan_rows.sort(key=lambda r: r[_TIME])
         return cameras
 
-    def _key_frames(self, sc: _Scene, key_rows: dict[tuple[str, str], tuple]
-                    ) -> dict[str, tuple[str, dict[str, tuple]]]:
-        """Stage 3 of `rig`: CAM_FRONT token -> (sample token, key row of each ring camera), in sample order."""
+    def _key_frames(self, key_rows: dict[tuple[str, str], tuple]) -> dict[str, tuple[str, dict[str, tuple]]]:
+        """CAM_FRONT token -> (sample token, key row of each ring camera), in sample order."""
+        sc = self.sc
         if not sc.samples:
             raise InputError(self.dir / "sample.json", f"scene {sc.name}", "has no samples")
         data_path = self.dir / "sample_data.json"
@@ -308,7 +321,9 @@ class NuScenesTables:
             keyframe_of[chosen[REFERENCE][_TOKEN]] = (sample, chosen)
         return keyframe_of
 
-    def _camera(self, sc: _Scene, channel: str, rows: list[tuple]) -> Camera:
+    def _camera(self, channel: str, rows: list[tuple]) -> Camera:
+        """The pinhole camera of one channel: its one calibration and image size in this scene."""
+        sc = self.sc
         calibs = {r[_CALIB] for r in rows}
         sizes = {r[_SIZE] for r in rows}
         data_path = self.dir / "sample_data.json"
@@ -319,7 +334,7 @@ class NuScenesTables:
         token = calibs.pop()
         (w, h), = sizes
         path = self.dir / "calibrated_sensor.json"
-        row = self._calib_rows[token]
+        row = self.tables._calib_rows[token]
         where = f"[token={token}]"
         entry = {"model": "pinhole", "width": w, "height": h, "K": get(row, "camera_intrinsic", path, where, list),
                  "dist": None}
@@ -331,7 +346,8 @@ class NuScenesTables:
         return Camera(channel, intrinsics, _pose(row, path, where))
 
     def _ego_pose(self, row: tuple) -> np.ndarray:
-        pose = self._ego.get(row[_EGO])
+        """The ego pose of a sample_data row."""
+        pose = self.tables._ego.get(row[_EGO])
         if pose is None:
             raise InputError(self.dir / "ego_pose.json", f"token {row[_EGO]}",
                              f"missing (referenced by sample_data {row[_TOKEN]})")
@@ -341,14 +357,17 @@ class NuScenesTables:
         """A LIDAR_TOP sample_data row as a sweep: its file, mount, ego pose and time."""
         if row is None:
             return None
-        mount = self._mounts.get(row[_CALIB])
+        mounts = self.tables._mounts
+        mount = mounts.get(row[_CALIB])
         if mount is None:
-            mount = _pose(self._calib_rows[row[_CALIB]], self.dir / "calibrated_sensor.json", f"[token={row[_CALIB]}]")
-            self._mounts[row[_CALIB]] = mount
+            mount = _pose(self.tables._calib_rows[row[_CALIB]], self.dir / "calibrated_sensor.json",
+                          f"[token={row[_CALIB]}]")
+            mounts[row[_CALIB]] = mount
         return LidarSweep(self.root / row[_FILE], "nuscenes_bin", mount, self._ego_pose(row), row[_TIME])
 
     def _frame(self, frame_id: str, chosen: dict[str, tuple], check: bool, cameras: list[Camera],
                lidar: tuple | None = None) -> Frame:
+        """One frame: the reference camera's time and pose, the other cameras' captures, images, LiDAR."""
         ref = chosen[REFERENCE]
         pose = self._ego_pose(ref)
         captures = {c: CameraCapture(None if r[_TIME] == ref[_TIME] else r[_TIME],

@@ -34,6 +34,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from ..cameras import Camera
 from ..errors import InputError
@@ -62,11 +63,7 @@ def is_omnimvs_folder(folder: Path) -> bool:
 
 
 def read_config(path: Path) -> dict:
-    """Parse `config.yaml` (needs PyYAML); InputError for bad YAML or a non-mapping top level."""
-    try:
-        import yaml
-    except ImportError:  # pragma: no cover - PyYAML arrives with zarr's dependencies today
-        raise InputError(path, None, "reading config.yaml needs PyYAML (pip install pyyaml)") from None
+    """Parse `config.yaml`; InputError for bad YAML or a non-mapping top level."""
     try:
         doc = yaml.safe_load(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

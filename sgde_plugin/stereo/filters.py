@@ -177,3 +177,22 @@ def discontinuity_factor(disp: np.ndarray, valid: np.ndarray, jump_px: float, wi
     lo = cv2.erode(np.where(valid, d, np.float32(1e6)).astype(np.float32), k)
     rng = np.where(valid, hi - lo, 0)
     return np.where(rng > jump_px, jump_px / np.maximum(rng, 1e-6), 1.0).astype(np.float32)
+
+
+def depth_edge_factor(depth: np.ndarray, ratio: float, window: int = 15) -> np.ndarray:
+    """Per-pixel factor in [0, 1] from the local depth ratio (largest / smallest depth > 0 in a window).
+
+    1 up to a ratio of 1 + `ratio`, falling linearly to 0 at 1 + 5 `ratio`: near an occlusion edge the
+    prior is least reliable (foreground fattening, a wrong side of the edge, and a LiDAR that sees round
+    the object from elsewhere). Relative, so a given jump counts the same near and far. 1 where depth is 0.
+    """
+    k = np.ones((window, window), np.uint8)
+    d = np.ascontiguousarray(depth, dtype=np.float32)
+    out = np.ones(d.shape, np.float32)
+    idx = np.flatnonzero(d > 0)
+    if idx.size == 0:
+        return out
+    hi = cv2.dilate(d, k).reshape(-1)[idx]
+    lo = cv2.erode(np.where(d > 0, d, np.float32(1e9)), k).reshape(-1)[idx]
+    out.reshape(-1)[idx] = np.clip(1 - (hi / lo - 1 - ratio) / (4 * ratio), 0, 1)
+    return out

@@ -32,6 +32,8 @@ from typing import Any, Protocol
 
 import cv2
 import numpy as np
+import torch
+from torch import Tensor, nn
 
 from ..errors import InputError
 
@@ -75,7 +77,7 @@ class SGBMMatcher:
     disp12_max_diff: int = 1
     pre_filter_cap: int = 63
 
-    def _sgbm(self, channels: int, max_disparity: int) -> Any:
+    def _sgbm(self, channels: int, max_disparity: int) -> cv2.StereoSGBM:
         area = channels * self.block_size * self.block_size
         return cv2.StereoSGBM_create(
             minDisparity=0,
@@ -132,7 +134,7 @@ def network_input(images: Sequence[np.ndarray], input_scale: float = 1.0, multip
     return np.ascontiguousarray(batch, dtype=np.float32), pads
 
 
-def _output_array(out: Any) -> np.ndarray:
+def _output_array(out: Tensor | Sequence[Tensor] | np.ndarray) -> np.ndarray:
     """A network's output as float32 (B, H, W): the last of a list/tuple, channel 0 of a flow."""
     if isinstance(out, (list, tuple)):
         out = out[-1]
@@ -212,10 +214,8 @@ def _accepts(fn: Callable, name: str) -> bool:
     return name in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
-def torch_device(device: str) -> Any:
+def torch_device(device: str) -> torch.device:
     """A torch device from "cpu" / "cuda"; one line when CUDA is asked for but absent."""
-    import torch
-
     if device == "cuda" and not torch.cuda.is_available():
         raise InputError(None, "device", "cuda asked for, but torch sees no CUDA device (use --device cpu)")
     return torch.device(device)
@@ -224,8 +224,8 @@ def torch_device(device: str) -> Any:
 class TorchMatcher(LearnedMatcher):
     """A learned matcher as a torch module: forward(left, right, **forward_kwargs) on (B, 3, H, W) tensors."""
 
-    def __init__(self, module: Any, *, forward_kwargs: Mapping[str, Any] | None = None, device: str = "cpu",
-                 **kwargs: Any):
+    def __init__(self, module: nn.Module, *, forward_kwargs: Mapping[str, Any] | None = None, device: str = "cpu",
+                 **kwargs: float):
         super().__init__(**kwargs)
         self.device = torch_device(device)
         self.module = module.to(self.device).eval()
@@ -233,15 +233,14 @@ class TorchMatcher(LearnedMatcher):
         self._takes_range = _accepts(getattr(module, "forward", module), "max_disparity")
 
     @classmethod
-    def from_torchscript(cls, path: str | Path, **kwargs: Any) -> TorchMatcher:
+    def from_torchscript(cls, path: str | Path, **kwargs: float) -> TorchMatcher:
         """Load a TorchScript file (`torch.jit.save`)."""
-        import torch
-
         return cls(torch.jit.load(str(path), map_location="cpu"), **kwargs)
 
     @classmethod
     def from_state_dict(
-        cls, factory: Callable[..., Any], path: str | Path, options: Mapping[str, Any] | None = None, **kwargs: Any
+        cls, factory: Callable[..., nn.Module], path: str | Path, options: Mapping[str, Any] | None = None,
+        **kwargs: float,
     ) -> TorchMatcher:
         """Build the module with `factory(**options)` and load a checkpoint (`module.` prefixes stripped)."""
         try:
@@ -254,8 +253,6 @@ class TorchMatcher(LearnedMatcher):
 
     def run(self, left: np.ndarray, right: np.ndarray, max_disparity: int) -> np.ndarray:
         """The module on one batch (no gradients; TorchScript without per-shape re-optimisation)."""
-        import torch
-
         kwargs = dict(self.forward_kwargs)
         if self._takes_range:
             kwargs["max_disparity"] = int(max_disparity)
@@ -266,10 +263,8 @@ class TorchMatcher(LearnedMatcher):
             return _output_array(self.module(a, b, **kwargs))
 
 
-def load_checkpoint(module: Any, path: str | Path) -> None:
+def load_checkpoint(module: nn.Module, path: str | Path) -> None:
     """Load a state dict (plain, under 'state_dict' / 'model', or DataParallel's `module.` keys) into a module."""
-    import torch
-
     try:
         state = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is bad input
@@ -288,7 +283,7 @@ def load_checkpoint(module: Any, path: str | Path) -> None:
     module.load_state_dict(state)
 
 
-def _key_mismatch(module: Any, state: Mapping[str, Any]) -> tuple[list[str], list[str]]:
+def _key_mismatch(module: nn.Module, state: Mapping[str, Any]) -> tuple[list[str], list[str]]:
     own = set(module.state_dict())
     return sorted(own - set(state)), sorted(set(state) - own)
 
@@ -308,7 +303,7 @@ class OnnxMatcher(LearnedMatcher):
     """A learned matcher exported to ONNX: two image inputs (B, 3, H, W) with dynamic H and W, and an
     optional third scalar input taking the search range."""
 
-    def __init__(self, path: str | Path, *, device: str = "cpu", **kwargs: Any):
+    def __init__(self, path: str | Path, *, device: str = "cpu", **kwargs: float):
         import onnxruntime as ort
 
         super().__init__(**kwargs)
@@ -351,7 +346,7 @@ class OnnxMatcher(LearnedMatcher):
         return _output_array(out)
 
 
-def _import_factory(spec: str) -> Callable[..., Any]:
+def _import_factory(spec: str) -> Callable[..., nn.Module]:
     """`package.module:callable` -> the callable."""
     module_name, _, attr = spec.partition(":")
     if not module_name or not attr:
@@ -362,7 +357,7 @@ def _import_factory(spec: str) -> Callable[..., Any]:
         raise InputError(None, "matcher_arch", f"cannot import {spec!r} ({exc})") from None
 
 
-def raft_stereo_class() -> Any:
+def raft_stereo_class() -> type[nn.Module]:
     """The official RAFTStereo class from the user's checkout (`core.raft_stereo` on PYTHONPATH)."""
     try:
         return importlib.import_module(RAFT_STEREO_MODULE).RAFTStereo
@@ -372,7 +367,7 @@ def raft_stereo_class() -> Any:
                          ) from None
 
 
-def raft_stereo_module(options: Mapping[str, Any] | None = None) -> Any:
+def raft_stereo_module(options: Mapping[str, Any] | None = None) -> nn.Module:
     """An official RAFTStereo built with the demo's arguments, updated by `options`."""
     args = argparse.Namespace(**{**RAFT_STEREO_ARGS, **dict(options or {})})
     return raft_stereo_class()(args)

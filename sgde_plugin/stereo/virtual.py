@@ -58,7 +58,7 @@ def virtual_pinholes(
 
 
 def virtual_pinhole_images(
-    camera: Camera, image: np.ndarray, rim_px: int | None = None, **kwargs
+    camera: Camera, image: np.ndarray, rim_px: int | None = None, **kwargs: float | None
 ) -> tuple[tuple[np.ndarray, Camera], tuple[np.ndarray, Camera]]:
     """((left image, left camera), (right image, right camera)) of a fisheye image; 0 = no data.
 

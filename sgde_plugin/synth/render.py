@@ -19,6 +19,7 @@ from torch import Tensor
 
 from ..cameras import Camera, CameraModel
 from ..threads import torch_threads  # noqa: F401 - re-exported
+from .ego_body import body_hits, reflect
 from .shading import shade
 from .world import World
 
@@ -244,8 +245,6 @@ def _cone_tiles(tiles: RayTiles, dirs: Tensor, valid: Tensor) -> RayTiles:
 def _with_ego_body(world: World, tiles: RayTiles, rgb: Tensor, camera: Camera, cam_to_world: np.ndarray,
                    time_s: float, angle: Tensor, lod_origin: np.ndarray | None) -> Tensor:
     """Linear RGB with the ego body's pixels replaced by its paint mixed with the mirrored world."""
-    from .ego_body import body_hits, reflect
-
     body = world.ego_body
     t, n, trim = body_hits(body, tiles.dirs, camera.sensor_to_ego)
     on = tiles.valid & torch.isfinite(t)
@@ -286,8 +285,6 @@ def render(
             depth_t = hits1.t * tiles1.dirs[..., 2]
         has_depth = (hits1.pid >= 0) & (hits1.t <= MAX_DEPTH_M)
         if world.ego_body is not None:
-            from .ego_body import body_hits
-
             tb, _, _ = body_hits(world.ego_body, tiles1.dirs, camera.sensor_to_ego)
             on = tiles1.valid & torch.isfinite(tb)
             depth_t = torch.where(on, tb.float() * (1.0 if intr.depth_is_range else tiles1.dirs[..., 2]), depth_t)

@@ -27,7 +27,9 @@ import numpy as np
 from ..cameras import Camera
 from ..geometry import make_transform, rodrigues
 from ..io import write_depth_png, write_image
+from ..progress import progress
 from ..rig import CameraCapture, Frame, Rig, ring_pairs, write_rig_json
+from .ego_body import body_mask
 from .presets import preset_cameras, preset_ring, preset_world
 from .random_rig import random_rig
 from .render import render, rig_lod, torch_threads
@@ -116,8 +118,6 @@ def _rigs(preset: str, frames: int, seed: int, scale: float, noise_deg: float, n
 
 def _body_masks(world: World, rig_true: Rig) -> dict[str, np.ndarray]:
     """True ego-body pixels of every camera (empty without a body)."""
-    from .ego_body import body_mask
-
     if world.ego_body is None:
         return {}
     return {c.name: body_mask(world.ego_body, c) for c in rig_true.cameras}
@@ -132,8 +132,6 @@ def _render_frames(world: World, rig_true: Rig, supersample: int,
                    sink: Callable[[str, str, np.ndarray, np.ndarray], None], show_progress: bool | None,
                    workers: int) -> None:
     """Render every (frame, camera) with the true rig, `workers` at a time; `sink` receives them in order."""
-    from ..progress import progress
-
     jobs = [(fr, cam) for fr in rig_true.frames for cam in rig_true.cameras]
 
     lod = rig_lod(list(rig_true.cameras))

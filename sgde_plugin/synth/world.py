@@ -10,7 +10,7 @@ vertical cylinders (poles). Moving boxes have a constant velocity; the ego drive
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -256,7 +256,6 @@ def with_companions(world: World, boxes: list[tuple], time_s: float = 0.0) -> Wo
     """
     if not boxes:
         return world
-    from dataclasses import replace
 
     pose = world.ego_pose(time_s)
     heading = math.atan2(pose[1, 0], pose[0, 0])
