@@ -61,6 +61,16 @@ def test_bench_real_on_scene_01_one_frame(tmp_path: Path) -> None:
     assert overall["n_overlap"] == sum(c["n_overlap"] for c in a["cameras"].values()) > 1000
     assert 0 < overall["n_prior"] and 0 < overall["coverage"] < 1
     assert overall["abs_rel"] < 0.5
+    # the breakdown splits exactly the compared points; its bands add up to all of them and all of the error
+    br = a["breakdown"]
+    assert br["n"] == overall["n_prior"]
+    for table in ("depth_m", "image_rows", "confidence"):
+        assert sum(r["n"] for r in br[table]) == br["n"]
+        assert sum(r["share_of_abs_rel"] for r in br[table]) == pytest.approx(1.0)
+    mean = sum(r["abs_rel"] * r["n"] for r in br["depth_m"] if r["n"]) / br["n"]
+    assert mean == pytest.approx(overall["abs_rel"], rel=1e-4)
+    assert set(br["pair_disparity_error_px"]) <= set(report["pairs"]) and br["pair_disparity_error_px"]
+    assert a["curve"][0]["n_prior"] == overall["n_prior"]
 
 
 def _copy_scene(tmp_path: Path) -> Path:

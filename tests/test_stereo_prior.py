@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import math
 
+import cv2
 import numpy as np
 import pytest
 from stereo_scene import Plane, fisheye_pair, nuscenes_pair, render, wall
@@ -177,3 +178,26 @@ def test_result_does_not_depend_on_the_thread_count():
     for name in one:
         assert np.array_equal(one[name].depth, two[name].depth)
         assert np.array_equal(one[name].confidence, two[name].confidence)
+
+
+def test_backprojection_skipping_empty_map_rows_loses_no_sample():
+    """Sparse confidence (small patches): `values` equals one plain remap of every covered pixel, bit for bit."""
+    rig, _, _ = pinhole_scene()
+    back = PriorBuilder(rig, PriorConfig()).plans[0].left.back
+    h, w = back.core
+    yy, xx = np.mgrid[0:h, 0:w]
+    disp = (20 + 0.05 * xx + 0.03 * yy).astype(np.float32)  # smooth: no disparity jump to drop
+    conf = np.zeros((h, w), np.float32)
+    rng = np.random.default_rng(3)
+    for y, x in zip(rng.integers(0, h - 1, 25), rng.integers(0, w - 1, 25)):
+        conf[y : y + 3, x : x + 3] = rng.uniform(0.2, 1.0)  # 3x3 patches (2x2 at the border)
+    idx, z, c = back.values(disp, conf, 0.5, 80.0)
+    stack = np.dstack([np.where(conf > 0, disp, -1.0e5), conf]).astype(np.float32)
+    out = cv2.remap(stack, back.map1, back.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(-1.0e5, 0.0, 0.0, 0.0)).reshape(-1, 2)[: back.count]
+    ok = out[:, 0] > 0
+    ref_z = back.kfb[ok] / out[ok, 0]
+    keep = (ref_z >= 0.5) & (ref_z <= 80.0)
+    assert 50 < idx.size < 0.1 * back.count
+    assert np.array_equal(idx, back.index[ok][keep])
+    assert np.array_equal(z, ref_z[keep]) and np.array_equal(c, out[ok, 1][keep])

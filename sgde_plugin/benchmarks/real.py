@@ -6,7 +6,9 @@ truth of `Rig.load_depth` (ego-motion compensated, nearest return per pixel): Ab
 delta < 1.25, the number of LiDAR points compared, and the coverage: the share of LiDAR points inside
 the true overlap (points that project into a neighbouring camera, at its own capture) that receive a
 prior. Per camera, per pair and overall; with times. The overlap is always taken from the data set's
-extrinsics, so every source is judged on the same LiDAR points.
+extrinsics, so every source is judged on the same LiDAR points. Each source also gets a breakdown of its
+errors (`real_breakdown`: by depth, image row and confidence band, large errors, the median disparity
+error per pair) and the sparsification curve of its confidence.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from ..stereo.config import PriorConfig
 from ..stereo.evaluate import PriorEvaluator
 from ..stereo.pipeline import PriorBuilder
 from ..tables import format_table
+from .real_breakdown import ErrorBreakdown, breakdown_tables
 
 COLUMNS = ("abs_rel", "sq_rel", "rmse", "a1", "n_prior", "coverage", "n_overlap")
 
@@ -49,20 +52,33 @@ def _truth(rig: Rig) -> tuple[dict, dict, float]:
     return gts, masks, time.perf_counter() - t0
 
 
+def _masked(gt: Any, mask: Any) -> Any:
+    """LiDAR depth with the ego mask's pixels (False = not used) set to 0; None stays None."""
+    return gt if gt is None or mask is None else gt * (mask > 0)
+
+
 def evaluate_source(rig: Rig, rig_overlap: Rig, images: dict, gts: dict, masks: dict, config: PriorConfig) -> dict:
     """Build the priors of every frame with `rig`'s extrinsics and score them (overlap from `rig_overlap`)."""
     t0 = time.perf_counter()
     builder = PriorBuilder(rig, config)
     setup = time.perf_counter() - t0
-    evaluator = PriorEvaluator(rig_overlap, config.geometry.max_depth, sparse_truth=True)
+    max_depth = config.geometry.max_depth
+    evaluator = PriorEvaluator(rig_overlap, max_depth, sparse_truth=True)
+    breakdown = ErrorBreakdown()
     build = score = 0.0
     for fid, frame_images in images.items():
         t1 = time.perf_counter()
         priors = builder.build(frame_images, frame=fid)
         t2 = time.perf_counter()
-        evaluator.add({c: p.depth for c, p in priors.items()}, gts[fid], masks, frame=fid)
+        depth = {c: p.depth for c, p in priors.items()}
+        confidence = {c: p.confidence for c, p in priors.items()}
+        evaluator.add(depth, gts[fid], masks, frame=fid, confidences=confidence)
+        breakdown.add(depth, confidence, {c: _masked(g, masks.get(c)) for c, g in gts[fid].items()}, max_depth)
         build, score = build + t2 - t1, score + time.perf_counter() - t2
     report = evaluator.result()
+    fb = {f"{p.pair.left.name}|{p.pair.right.name}": float(p.pair.rect_left.intrinsics.K[0, 0] * p.pair.baseline_m)
+          for p in builder.plans}
+    report["breakdown"] = breakdown.result(evaluator.pair_samples(), fb)
     report["seconds"] = {"setup": round(setup, 2), "prior_per_frame": round(build / max(1, len(images)), 2),
                          "eval_per_frame": round(score / max(1, len(images)), 2)}
     return report
@@ -107,6 +123,12 @@ def report_tables(report: dict[str, Any]) -> str:
         blocks.append(format_table([row("camera", c, g) for c, g in rep["cameras"].items()]))
         blocks.append(format_table([row("pair", p, g) for p, g in rep["pairs"].items()]))
         blocks.append(format_table([row("scope", "all", rep["overall"])]))
+        if "breakdown" in rep:
+            blocks.append("where the errors are (LiDAR points with a prior; share_of_abs_rel: of the Abs Rel sum):")
+            blocks.append(breakdown_tables(rep["breakdown"]))
+        if rep.get("curve"):
+            blocks.append("sparsification curve (values kept at confidence >= min_confidence):")
+            blocks.append(format_table(rep["curve"]))
     t = report["seconds"]
     blocks.append(f"LiDAR truth {t['lidar_truth']} s, images {t['images']} s, total {t['total']} s "
                   f"(load average {', '.join(map(str, report['load_avg']))})")

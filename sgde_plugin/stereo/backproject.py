@@ -20,7 +20,8 @@ import torch
 from ..cameras import Camera
 from .rectify import torch_threads
 
-_ROW = 1024  # sample positions are laid out in rows of this length for cv2.remap
+_ROW = 64  # sample positions are laid out in rows of this length for cv2.remap; a frame remaps only the rows
+# whose footprint in the canvas holds a usable disparity
 _SENTINEL = -1.0e5  # disparity of "no value"; any bilinear weight >= 1/32 on it gives a negative sample
 
 
@@ -33,6 +34,8 @@ class BackProjection:
     map1: np.ndarray  # fixed-point cv2.remap maps (rows x _ROW) of their rectified positions (padded)
     map2: np.ndarray
     kfb: np.ndarray  # (N,) float32: depth = kfb / disparity
+    core: tuple[int, int]  # (H, Wc) of the disparity maps sampled (the core columns)
+    corners: np.ndarray  # (rows, 4) flat indices into the core's summed-area table bounding each map row's footprint
 
     @property
     def count(self) -> int:
@@ -46,9 +49,22 @@ class BackProjection:
 
         Invalid pixels, and both pixels of every horizontal or vertical neighbour pair whose
         disparities differ by more than `edge_px`, get a large negative sentinel; a bilinear sample
-        that touches one comes out negative and is dropped. One remap does the whole job.
+        that touches one comes out negative and is dropped (-1 here). One remap does the whole job.
         """
-        n = self.count
+        pos, d, c = self._samples(disparity, confidence, edge_px)
+        dd = np.full(self.count, -1.0, np.float32)
+        cc = np.zeros(self.count, np.float32)
+        dd[pos], cc[pos] = d, c
+        return dd, cc, dd > 0
+
+    def _samples(
+        self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 1.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`sample` at the covered pixels that get a value: (positions in 0..N-1, disparity > 0, confidence).
+
+        Map rows whose bilinear footprints hold no usable canvas pixel (summed-area test) would
+        only sample the sentinel; they are skipped, the others remapped exactly as a whole.
+        """
         d = np.where(confidence > 0, disparity, _SENTINEL).astype(np.float32)
         ok = confidence > 0
         jump_x = ok[:, 1:] & ok[:, :-1] & (np.abs(d[:, 1:] - d[:, :-1]) > edge_px)
@@ -59,22 +75,31 @@ class BackProjection:
         edge[1:] |= jump_y
         edge[:-1] |= jump_y
         d[edge] = _SENTINEL
+        ok &= ~edge
+        if ok.shape != self.core:
+            raise ValueError(f"disparity is {ok.shape}, the backward map was made for {self.core}")
+        table = cv2.integral(ok.view(np.uint8)).reshape(-1)
+        a, b, c, e = (table[self.corners[:, i]] for i in range(4))
+        rows = np.flatnonzero(a - b - c + e > 0)
+        if rows.size == 0:
+            return np.zeros(0, np.intp), np.zeros(0, np.float32), np.zeros(0, np.float32)
+        full = rows.size == self.corners.shape[0]
+        map1, map2 = (self.map1, self.map2) if full else (self.map1[rows], self.map2[rows])
         stack = cv2.merge([d, confidence.astype(np.float32)])
-        out = cv2.remap(stack, self.map1, self.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=(_SENTINEL, 0.0, 0.0, 0.0))
-        dd = out[..., 0].reshape(-1)[:n]
-        cc = out[..., 1].reshape(-1)[:n]
-        valid = dd > 0
-        return dd, np.where(valid, cc, 0).astype(np.float32), valid
+        out = cv2.remap(stack, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=(_SENTINEL, 0.0, 0.0, 0.0)).reshape(-1, 2)
+        got = np.flatnonzero(out[:, 0] > 0)
+        pos = got if full else rows[got // _ROW] * _ROW + got % _ROW
+        return pos, out[got, 0], out[got, 1]
 
     def values(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flat pixel indices, depth in the camera's convention, confidence) of the pixels that got a value."""
-        d, c, ok = self.sample(disparity, confidence)
-        z = np.where(ok, self.kfb / np.where(ok, d, 1), 0)
-        ok &= (z >= min_depth) & (z <= max_depth)
-        return self.index[ok], z[ok].astype(np.float32), c[ok]
+        pos, d, c = self._samples(disparity, confidence)
+        z = self.kfb[pos] / d
+        keep = (z >= min_depth) & (z <= max_depth)
+        return self.index[pos[keep]], z[keep], c[keep]
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
@@ -137,12 +162,20 @@ def _backprojection(
     map_x[:n] = u[index].numpy() - x0
     map_y[:n] = v[index].numpy()
     map1, map2 = cv2.convertMaps(map_x.reshape(rows, _ROW), map_y.reshape(rows, _ROW), cv2.CV_16SC2)
+    # each map row's footprint: the integer corners remap uses (map1) and the next column and row
+    h, w = rect.height, x1 - x0
+    cx, cy = map1[..., 0].astype(np.int64), map1[..., 1].astype(np.int64)
+    c0, c1 = np.clip(cx.min(1), 0, w - 1), np.clip(cx.max(1) + 1, 0, w - 1) + 1
+    r0, r1 = np.clip(cy.min(1), 0, h - 1), np.clip(cy.max(1) + 1, 0, h - 1) + 1
+    corners = np.stack([r1 * (w + 1) + c1, r0 * (w + 1) + c1, r1 * (w + 1) + c0, r0 * (w + 1) + c0], axis=1)
     return BackProjection(
         shape=(camera.height, camera.width),
         index=index.numpy().astype(np.int64),
         map1=map1,
         map2=map2,
         kfb=(k.numpy() * K[0, 0] * baseline_m).astype(np.float32),
+        core=(h, w),
+        corners=corners,
     )
 
 

@@ -198,6 +198,13 @@ class PriorEvaluator:
         """4x4 camera a -> camera b, each at its own capture of `frame`."""
         return invert_transform(self.rig.capture(frame, b).camera_to_world) @ self.rig.capture(frame, a).camera_to_world
 
+    def pair_samples(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """{"A|B": (prior, truth)}: the pooled samples of each pair's true overlap that have a prior."""
+        def cat(parts: list[np.ndarray]) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+
+        return {k: (cat(g.pred), cat(g.gt)) for k, g in self.pairs.items()}
+
     def result(self) -> dict[str, Any]:
         """{"overall": row, "cameras": {name: row}, "pairs": {"A|B": row}, "frames": n}."""
         return {

@@ -106,9 +106,10 @@ def lr_check(
     cols = np.arange(w, dtype=np.float32)[None, :]
     x = np.rint(cols + sign * disp_a).astype(np.intp)
     inside = (x >= 0) & (x < w)
-    xc = np.clip(x, 0, w - 1)
-    other = np.take_along_axis(disp_b, xc, axis=1)
-    other_c = np.take_along_axis(conf_b, xc, axis=1)
+    flat = np.clip(x, 0, w - 1)
+    flat += np.arange(0, h * w, w)[:, None]  # flat index of the matched pixel, same row
+    other = disp_b.reshape(-1)[flat]
+    other_c = conf_b.reshape(-1)[flat]
     diff = np.abs(disp_a - other)
     ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
     return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32)

@@ -8,7 +8,7 @@ per camera: prepare the images, match each pair (batched for a learned matcher),
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -201,13 +201,11 @@ class PriorBuilder:
         masks = self._masks(masks)
         grey = self._prepare(images)
         batched = self._match_batched(grey, masks)
-        if self.threads > 1 and len(self.plans) > 1:
-            with ThreadPoolExecutor(self.threads) as pool:
-                results = list(pool.map(lambda p: self._pair_values(p, grey, masks, batched), self.plans))
-        else:
-            results = [self._pair_values(p, grey, masks, batched) for p in self.plans]
-        t0 = time.perf_counter()
-        out = self._fuse([values for values, _ in results], masks)
+        with ThreadPoolExecutor(self.threads) as pool:
+            mapper = pool.map if self.threads > 1 and len(self.plans) > 1 else map
+            results = list(mapper(lambda p: self._pair_values(p, grey, masks, batched), self.plans))
+            t0 = time.perf_counter()
+            out = self._fuse([values for values, _ in results], masks, mapper)
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
         timings["fuse"] = time.perf_counter() - t0
         timings["total"] = time.perf_counter() - t_start
@@ -229,28 +227,42 @@ class PriorBuilder:
 
     def _fuse(
         self, pair_values: list[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]],
-        masks: Mapping[str, np.ndarray | None],
+        masks: Mapping[str, np.ndarray | None], mapper: Callable = map,
     ) -> dict[str, PriorMap]:
         """`build`, last stage: every pair's values fused into each camera's map in pair order, then the
-        masks, the occlusion-edge factor and the confidence threshold applied."""
-        out = {c.name: PriorMap.empty(c.height, c.width) for c in self.rig.cameras}
+        masks, the occlusion-edge factor and the confidence threshold applied; cameras are independent,
+        so `mapper` (e.g. a thread pool's map) may process them in parallel."""
+        per_camera: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {c: [] for c in self.rig.camera_names}
         for values in pair_values:
             for camera, index, z, c in values:
-                fuse_into(out[camera].depth, out[camera].confidence, index, z, c)
+                per_camera[camera].append((index, z, c))
+        names = list(per_camera)
+        return dict(zip(names, mapper(lambda n: self._fuse_camera(n, per_camera[n], masks.get(n)), names)))
+
+    def _fuse_camera(
+        self, name: str, values: list[tuple[np.ndarray, np.ndarray, np.ndarray]], mask: np.ndarray | None
+    ) -> PriorMap:
+        """One camera's map from its (flat index, depth, confidence) values in pair order (see `_fuse`)."""
+        cam = self.rig.camera(name)
+        prior = PriorMap.empty(cam.height, cam.width)
+        for i, (index, z, c) in enumerate(values):
+            if i == 0:  # into the empty map: fuse_into would take every value as it is
+                prior.depth.reshape(-1)[index] = z
+                prior.confidence.reshape(-1)[index] = c
+            else:
+                fuse_into(prior.depth, prior.confidence, index, z, c)
         conf_cfg = self.config.confidence
-        for name, prior in out.items():
-            mask = masks.get(name)
-            if mask is not None:
-                prior.depth[~mask] = 0
-                prior.confidence[~mask] = 0
-            if conf_cfg.edge_depth_ratio > 0:  # occlusion edges of the fused map (pairs and sides together)
-                prior.confidence *= depth_edge_factor(prior.depth, conf_cfg.edge_depth_ratio, conf_cfg.edge_window_px)
-                prior.depth[prior.confidence <= 0] = 0
-            if conf_cfg.min_confidence > 0:
-                unsure = prior.confidence < conf_cfg.min_confidence
-                prior.depth[unsure] = 0
-                prior.confidence[unsure] = 0
-        return out
+        if mask is not None:
+            prior.depth[~mask] = 0
+            prior.confidence[~mask] = 0
+        if conf_cfg.edge_depth_ratio > 0:  # occlusion edges of the fused map (pairs and sides together)
+            prior.confidence *= depth_edge_factor(prior.depth, conf_cfg.edge_depth_ratio, conf_cfg.edge_window_px)
+            prior.depth[prior.confidence <= 0] = 0
+        if conf_cfg.min_confidence > 0:
+            unsure = prior.confidence < conf_cfg.min_confidence
+            prior.depth[unsure] = 0
+            prior.confidence[unsure] = 0
+        return prior
 
     def _canvases(
         self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None]
