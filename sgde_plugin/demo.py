@@ -28,7 +28,16 @@ from .figures import CameraPanel, save_bev_points, save_prior_panels
 from .io import atomic_path, atomic_write_text
 from .nn import DepthNet
 from .nn.sequence import RigSequence, lidar_pattern, overlap_masks
-from .nn.train import evaluate, train_arm
+from .nn.train import (
+    SELF_INITIAL_DEPTH_M,
+    SELF_PRIOR_LOSS,
+    SELF_PRIOR_WEIGHT,
+    SELF_SCHEDULE,
+    SelfSupervision,
+    evaluate,
+    start_at_depth,
+    train_arm,
+)
 from .pairs import relative_pose_errors
 from .rig import Rig, attach_files, read_rig_folder, read_rig_json, write_rig_json
 from .stereo.config import PriorConfig
@@ -96,14 +105,35 @@ def _network_arrays(rig_true: Rig, cache_path: Path, size: tuple[int, int]):
     pairs = [(names[i], names[(i + 1) % N]) for i in range(N)]
     seq = RigSequence(cams, pairs, images, depth, supervision, prior, prior > 0, overlap,
                       "demo frames", "demo cache (glc)")
+    _add_temporal_context(seq, rig_true, size)
     return seq
 
 
-def _train_and_test(seq, steps: int, out: Path) -> tuple[list[dict], Path]:
+def _add_temporal_context(seq, rig_true: Rig, size: tuple[int, int]) -> None:
+    """What self-supervision needs: each camera's pose at its capture, the previous and next frames as
+    temporal sources (frames 1..F-2), the static masks at network size."""
+    frames, names = rig_true.frames, rig_true.camera_names
+    seq.camera_to_world = np.stack([np.stack([rig_true.capture(fr, c).camera_to_world for c in names])
+                                    for fr in frames])
+    n_frames = len(frames)
+    seq.context_images = np.zeros((n_frames, 2, *seq.images.shape[1:]), np.uint8)
+    seq.context_camera_to_world = np.tile(np.eye(4), (n_frames, 2, len(names), 1, 1))
+    for k in range(1, n_frames - 1):
+        for j, other in enumerate((k - 1, k + 1)):
+            seq.context_images[k, j] = seq.images[other]
+            seq.context_camera_to_world[k, j] = seq.camera_to_world[other]
+    masks = [rig_true.load_mask(c) for c in names]
+    if any(m is not None for m in masks):
+        seq.masks = np.stack([np.ones(size, bool) if m is None else resize_depth(m.astype(np.float32), size)[0] > 0.5
+                              for m in masks])
+
+
+def _train_and_test(seq, steps: int, out: Path, self_seq=None, self_steps: int = 0) -> tuple[list[dict], Path]:
     """Train the baseline and the prior net (input + L1) on all but the last frame; test on the last.
 
-    The self-supervised recipe (`sgde bench train-effect --supervision self`) is not part of the demo: with the
-    demo's budget it diverged (Abs Rel 0.97), see the README's known limits."""
+    With ``self_seq`` (the same frames at the self-supervised recipe's smaller size) a prior net (input & L1)
+    is also trained self-supervised, `sgde bench train-effect --supervision self`'s recipe, on the frames
+    whose neighbours are not the test frame, and tested on the last frame."""
     frames = list(range(seq.images.shape[0]))
     train, test = frames[:-1], frames[-1:]
     rows = []
@@ -118,14 +148,33 @@ def _train_and_test(seq, steps: int, out: Path) -> tuple[list[dict], Path]:
     for label, net, weight in arms:
         torch.manual_seed(0)
         seconds = train_arm(net, seq, train, steps, seed=0, prior_weight=weight, lr=4e-4)
-        res = evaluate(net, seq, test)
-        rows.append({"model": label, **{k: res[k] for k in ("abs_rel", "abs_rel_median_scaled", "rmse", "a1",
-                                                             "abs_rel_overlap", "dep_con")},
-                     "train_s": seconds})
+        rows.append(_network_row(label, evaluate(net, seq, test), seconds))
         if net is arms[1][1]:
             with atomic_path(ckpt) as tmp:
                 torch.save({"state_dict": net.state_dict(), "config": config}, tmp)
+    if self_seq is not None and self_steps:
+        torch.manual_seed(0)
+        net = _self_supervised_net()
+        # targets need both temporal neighbours, and neither may be the test frame (3 frames: use frame 1)
+        seconds = train_arm(net, self_seq, frames[1:-2] or frames[1:-1], self_steps, seed=0,
+                            prior_weight=SELF_PRIOR_WEIGHT, self_supervision=SelfSupervision(self_seq),
+                            schedule=SELF_SCHEDULE, prior_loss=SELF_PRIOR_LOSS)
+        h, w = self_seq.images.shape[2:4]
+        rows.append(_network_row(f"self-supervised + prior input & L1 ({w}x{h})", evaluate(net, self_seq, test),
+                                 seconds))
     return rows, ckpt
+
+
+def _self_supervised_net() -> DepthNet:
+    """The self-supervised recipe's prior net (input & L1, validity channel; depth 0.5-100 m starting at 10 m)."""
+    init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0)
+    start_at_depth(init, SELF_INITIAL_DEPTH_M)
+    return DepthNet.with_prior_from(init, validity=True, prior_max_depth=80.0)
+
+
+def _network_row(label: str, res: dict, seconds: float) -> dict:
+    return {"model": label, **{k: res[k] for k in ("abs_rel", "abs_rel_median_scaled", "rmse", "a1",
+                                                    "abs_rel_overlap", "dep_con")}, "train_s": seconds}
 
 
 def _export(ckpt: Path, out: Path, size: tuple[int, int]) -> dict[str, Any]:
@@ -176,7 +225,8 @@ def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Call
     clock.run("figures", lambda: _figures(out, rig_true, rigs, caches, best, save_prior_panels, save_bev_points,
                                           CameraPanel))
     seq = clock.run("network data", lambda: _network_arrays(rig_true, caches[best], s.net_size))
-    net_rows, ckpt = clock.run("train", lambda: _train_and_test(seq, s.train_steps, out))
+    self_seq = _network_arrays(rig_true, caches[best], s.self_size) if s.self_steps else None
+    net_rows, ckpt = clock.run("train", lambda: _train_and_test(seq, s.train_steps, out, self_seq, s.self_steps))
     export = clock.run("export", lambda: _export(ckpt, out, s.net_size))
 
     summary = {"settings": s.__dict__, "calibration": calib_rows, "priors": prior_rows, "network": net_rows,

@@ -15,6 +15,8 @@ class DemoSettings:
     seed: int = 0
     net_size: tuple[int, int] = (96, 160)
     train_steps: int = 300
+    self_size: tuple[int, int] = (48, 80)  # the self-supervised arm: `sgde bench train-effect --supervision self`
+    self_steps: int = 150
     methods: tuple[str, ...] = ("none", "glc")
 
 

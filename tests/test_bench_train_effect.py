@@ -19,8 +19,8 @@ def test_thin_hits_keeps_the_asked_density_and_only_lidar_pixels():
 def test_self_supervised_nets_start_at_the_asked_depth():
     import torch
 
-    from sgde_plugin.benchmarks.train_effect import start_at_depth
     from sgde_plugin.nn import DepthNet, sigmoid_to_depth
+    from sgde_plugin.nn.train import start_at_depth
 
     net = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0)
     start_at_depth(net, 10.0)

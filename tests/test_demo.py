@@ -9,7 +9,7 @@ from sgde_plugin.demo import DemoSettings, run_demo
 
 
 def test_demo_end_to_end_small(tmp_path: Path) -> None:
-    settings = DemoSettings(frames=3, scale=0.3, net_size=(64, 96), train_steps=3)
+    settings = DemoSettings(frames=3, scale=0.3, net_size=(64, 96), train_steps=3, self_steps=3)
     summary = run_demo(tmp_path, settings, log=lambda _line: None)
     for name in ("report.md", "summary.json", "priors.png", "bev_points.png", "depth_r18_prior.onnx",
                  "rig_glc.json", "rig_none.json"):
@@ -21,3 +21,7 @@ def test_demo_end_to_end_small(tmp_path: Path) -> None:
     assert priors["none"]["abs_rel"] > 2 * priors["true (reference)"]["abs_rel"] or priors["none"]["coverage"] < 0.2
     assert summary["export"]["comparisons"] >= 4
     assert "## Calibration" in (tmp_path / "report.md").read_text()
+    # the network stage: baseline, prior net, and the self-supervised prior net at its own size
+    assert [row["model"] for row in summary["network"]] == [
+        "baseline (RGB)", "+ prior input & L1", "self-supervised + prior input & L1 (80x48)"]
+    assert all(0 < row["abs_rel"] < 10 for row in summary["network"])

@@ -20,6 +20,7 @@ from sgde_plugin.nn.photometric import (
     inverse_warp,
     min_reprojection,
     photometric_error,
+    pixel_loss,
     ssim_distance,
 )
 from sgde_plugin.synth.presets import preset_cameras
@@ -108,6 +109,49 @@ def test_min_reprojection_and_automask_semantics():
     identity = torch.tensor([0.25, 0.05, 0.3, 0.05]).reshape(1, 1, 1, 4)
     _, use = min_reprojection(errors, identity)
     assert use.flatten().tolist() == [True, False, False, False]
+
+
+def test_pixel_loss_keeps_masked_and_unseen_pixels_at_their_identity_error():
+    errors = torch.tensor([[[0.3, 0.1, UNSEEN, 0.5]], [[0.2, 0.4, UNSEEN, 0.05]]]).reshape(1, 2, 1, 4)
+    identity = torch.tensor([0.25, 0.05, 0.3, 0.05]).reshape(1, 1, 1, 4)
+    loss, counted = pixel_loss(errors, identity)
+    # used pixel: its best warped error; auto-masked (0.1 > 0.05, tie 0.05) and unseen: the identity error
+    assert torch.allclose(loss.flatten(), torch.tensor([0.2, 0.05, 0.3, 0.05]))
+    assert bool(counted.all())
+    # without temporal sources only the seen pixels count
+    loss, counted = pixel_loss(errors)
+    assert counted.flatten().tolist() == [True, True, False, True]
+
+
+def test_dropping_pixels_out_of_view_lowered_the_old_loss_and_raises_the_new():
+    """The old recipe's failure mode, constructed: a mean over the pixels still used rewards a depth that
+    throws badly matched pixels out of the loss (here out of view; at infinity the warp is the identity
+    and the auto-mask drops them). The loss now keeps such pixels at their identity error."""
+    cam = CAMERAS["pinhole"]().intrinsics
+    h, w = cam.height, cam.width
+    torch.manual_seed(0)
+    target = torch.rand(1, 3, h, w)
+    pose = torch.eye(4)[None]
+    pose[0, 0, 3] = 2 * 10.0 / float(cam.K[0, 0])  # at 10 m every pixel moves by 2 px
+    src = torch.zeros_like(target)
+    src[..., 2:] = target[..., :-2]
+    noisy_left = torch.where(torch.arange(w) < w // 2, 0.15, 0.02)  # the left half matches worse
+    src = (src + torch.randn(1, 3, h, w) * noisy_left).clamp(0, 1)
+    rays = depth_rays(cam)
+    true = torch.full((1, 1, h, w), 10.0)
+    gamed = true.clone()
+    gamed[..., : w // 2] = 0.1  # the left half thrown out of the source's view
+
+    def old(depth: torch.Tensor) -> float:
+        warped, seen = inverse_warp(src, depth, rays, cam, pose)
+        err = torch.where(seen, photometric_error(warped, target), torch.full_like(depth, UNSEEN))
+        best, use = min_reprojection(err, photometric_error(src, target))
+        return float((best * use).sum() / use.sum())
+
+    new = PhotometricLoss(PhotometricConfig(smoothness=0.0))
+    view = [SourceView(src, cam, pose, temporal=True)]
+    assert old(gamed) < 0.5 * old(true)  # 0.009 < 0.038: rewarded
+    assert float(new([gamed], target, rays, view)) > 3 * float(new([true], target, rays, view))  # 0.255 > 0.043
 
 
 def test_loss_masks_sources_and_target():

@@ -13,10 +13,12 @@ from sgde_plugin.nn import DepthNet
 from sgde_plugin.nn.train import (
     SELF_SUPERVISED_ARMS,
     SUPERVISED_ARMS,
+    Schedule,
     arm_nets,
     evaluate,
     frame_tensors,
     pooled_abs_rel,
+    prior_term,
     supervised_loss,
     train_arm,
 )
@@ -35,6 +37,35 @@ def test_supervised_loss_against_hand_value():
     # scale 0: |log 2 - log 1|, |log 2 - log 4| -> log 2; scale 1 (upsampled constant 8): log 8 and log 2
     expected = (math.log(2) + (math.log(8) + math.log(2)) / 2) / 2
     assert float(supervised_loss(out, gt, (0, 1))) == pytest.approx(expected, rel=1e-6)
+
+
+def test_log_prior_term_against_hand_value():
+    prior = torch.zeros(1, 1, 4, 4)
+    prior[0, 0, 0, 0], prior[0, 0, 3, 3], prior[0, 0, 1, 2] = 5.0, 20.0, 7.0
+    valid = prior > 0
+    valid[0, 0, 1, 2] = False  # an invalid prior pixel is ignored whatever its value
+    out = {("depth", 0): torch.full((1, 1, 4, 4), 10.0)}
+    # |log 10 - log 5| = |log 10 - log 20| = log 2, times lambda
+    assert float(prior_term(out, prior, valid, (0,), 0.3, "log_l1")) == pytest.approx(0.3 * math.log(2), rel=1e-6)
+    # the paper's L1 in metres: mean(5, 10) * lambda
+    assert float(prior_term(out, prior, valid, (0,), 0.005, "l1")) == pytest.approx(0.005 * 7.5, rel=1e-6)
+    with pytest.raises(ValueError):
+        prior_term(out, prior, valid, (0,), 0.3, "l2")
+
+
+def test_schedule_warms_up_and_decays(seq):
+    sched = Schedule(lr=1e-3, warmup=10, clip=0.5)
+    assert [sched.factor(i, 100) for i in (0, 4, 9, 50, 74, 75, 99)] == pytest.approx(
+        [0.1, 0.5, 1.0, 1.0, 1.0, 0.2, 0.2])
+    assert Schedule().factor(0, 10) == 1.0 and Schedule().factor(8, 10) == 0.2  # no warm-up: the old steps
+    # Adam's first step moves a parameter by at most its learning rate: lr / warmup, x0.2 (one step is its
+    # own last quarter)
+    torch.manual_seed(0)
+    net = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0, scales=(0,))
+    before = [p.detach().clone() for p in net.parameters()]
+    train_arm(net, seq, [0], steps=1, seed=0, prior_weight=None, schedule=Schedule(lr=1e-3, warmup=10, clip=1.0))
+    moved = max(float((p.detach() - b).abs().max()) for p, b in zip(net.parameters(), before, strict=True))
+    assert moved == pytest.approx(1e-3 * 0.1 * 0.2, rel=1e-2)
 
 
 def test_arm_nets_share_initial_weights_and_are_independent():

@@ -18,7 +18,10 @@ table instead (baseline, + input, + L1, + input & L1) with view synthesis (`sgde
 each camera's depth is scored by warping the same camera at t -/+ ``context_s`` (poses from the ego
 trajectory) and its two adjacent cameras of the same capture (metric scale) into it; a LiDAR-supervised
 baseline from the same initial weights is trained alongside as the reference for "a working
-self-supervised baseline". Abs Rel is reported without and with per-image median scaling.
+self-supervised baseline". Every arm and the reference follow `nn.train.SELF_SCHEDULE` (Adam lr 1e-3,
+20 warm-up steps, gradient norm clipped to 1) from depth heads set to 10 m; the L1 arms add
+0.05 * |log D - log D_p| (`nn.train.SELF_PRIOR_WEIGHT`). Abs Rel is reported without and with per-image
+median scaling.
 The training loop itself lives in `sgde_plugin.nn.train`.
 
 Data enter through one function, `load_sequence`, returning a `RigSequence` (images, ground
@@ -35,11 +38,10 @@ VoxFormer's grid (`occ_<grid>_<metric>`, see `benchmarks.occupancy`).
 from __future__ import annotations
 
 import copy
-import math
 import os
 import time
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -51,11 +53,15 @@ from ..nn import DepthNet
 from ..nn.sequence import RigSequence, lidar_pattern, overlap_masks
 from ..nn.train import (
     MAX_DEPTH_EVAL,
+    SELF_INITIAL_DEPTH_M,
+    SELF_SCHEDULE,
     SELF_SUPERVISED_ARMS,
     SUPERVISED_ARMS,
+    Schedule,
     SelfSupervision,
     arm_nets,
     evaluate,
+    start_at_depth,
     train_arm,
 )
 from ..rig import Frame, Rig, ring_pairs
@@ -220,19 +226,6 @@ SUPERVISION = {
 }
 
 
-SELF_INITIAL_DEPTH_M = 10.0  # self-supervised nets start predicting this depth everywhere (all arms alike)
-SELF_LR = 1e-3
-
-
-def start_at_depth(net: DepthNet, depth_m: float) -> None:
-    """Set the depth heads' biases so that a zero input to them gives ``depth_m`` (a view-synthesis loss
-    only sees pixels a few pixels from their current match: a random net's ~1 m start is too far)."""
-    sig = (1.0 / depth_m - 1.0 / net.max_depth) / (1.0 / net.min_depth - 1.0 / net.max_depth)
-    with torch.no_grad():
-        for head in net.decoder.heads.values():
-            head.bias.fill_(math.log(sig / (1.0 - sig)))
-
-
 @dataclass(frozen=True)
 class Protocol:
     """What one run of the bench trains and evaluates (the same for every arm and seed)."""
@@ -283,13 +276,16 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
     arms = SELF_SUPERVISED_ARMS if supervision == "self" else SUPERVISED_ARMS
     nets = arm_nets(init, arms, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem)
     self_sup = SelfSupervision(seq) if supervision == "self" else None
-    plan = [(arm.name, nets[arm.name], arm.prior_weight, self_sup) for arm in arms]
+    plan = [(arm.name, nets[arm.name], arm.prior_weight, arm.prior_loss, self_sup) for arm in arms]
     if self_sup is not None:
-        plan.append((REFERENCE, copy.deepcopy(init), None, None))
+        plan.append((REFERENCE, copy.deepcopy(init), None, "l1", None))
+    # the self-supervised recipe (warm-up, clipping) serves every arm and the reference alike
+    schedule = replace(SELF_SCHEDULE, lr=lr) if supervision == "self" else Schedule(lr=lr)
     results: dict[str, dict] = {}
-    for name, net, weight, loss in plan:
+    for name, net, weight, form, loss in plan:
         torch.manual_seed(seed)
-        train_s = train_arm(net, seq, train_idx, steps, seed, weight, lr=lr, self_supervision=loss)
+        train_s = train_arm(net, seq, train_idx, steps, seed, weight, self_supervision=loss, schedule=schedule,
+                            prior_loss=form)
         res = evaluate(net, seq, test_idx)
         res.update(occupancy_eval(net, seq, test_idx))
         res["train_s"] = round(train_s, 1)
@@ -359,9 +355,9 @@ def run(fast: bool = False, size: tuple[int, int] | None = None, steps: int | No
         render_factor: int = 4, supervision_density: float | None = None, stem: str = "full",
         supervision: str = "lidar", context_s: float = 0.1) -> dict:
     """Run the arms for each seed and return per-seed and mean figures (see module docstring).
-    ``lr`` defaults to 4e-4 (LiDAR-like) or 1e-3 (self-supervised)."""
+    ``lr`` defaults to 4e-4 (LiDAR-like) or the self-supervised recipe's (`nn.train.SELF_SCHEDULE`)."""
     log = log or (lambda _msg: None)
-    lr = lr if lr is not None else (SELF_LR if supervision == "self" else 4e-4)
+    lr = lr if lr is not None else (SELF_SCHEDULE.lr if supervision == "self" else 4e-4)
     size, steps, n_train, n_test = _protocol(fast, supervision, size, steps, train_frames, test_frames)
     seeds = tuple(seeds) if seeds is not None else ((0,) if fast else (0, 1, 2))
     t0, cpu0 = time.perf_counter(), time.process_time()

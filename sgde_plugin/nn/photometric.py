@@ -5,8 +5,9 @@ relative pose: every target pixel is lifted with the target camera's own unproje
 moved into the source camera and projected with the source camera's own project, so pinhole and
 fisheye (Kannala-Brandt, ocam) rigs go through one path. The photometric error is
 alpha * (1 - SSIM) / 2 + (1 - alpha) * L1 with alpha = 0.85; over several sources the per-pixel
-minimum is kept; auto-masking drops pixels whose error against an unwarped temporal source is lower
-(static scenes, objects moving with the ego); an edge-aware smoothness term regularises the
+minimum is kept; auto-masking gives pixels whose error against an unwarped temporal source is lower
+(static scenes, objects moving with the ego) that identity error instead (monodepth2: they stay in the
+mean as constants, so masking a pixel never lowers the loss); an edge-aware smoothness term regularises the
 mean-normalised inverse depth; every output scale is upsampled to the input size and scored there.
 
 Sources are temporal (the same camera at t-1 / t+1, poses from the ego trajectory) and spatial (the
@@ -137,6 +138,21 @@ def min_reprojection(errors: Tensor, identity: Tensor | None = None) -> tuple[Te
     return best, use
 
 
+def pixel_loss(errors: Tensor, identity: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """monodepth2's per-pixel loss: (loss [B,1,H,W], counted [B,1,H,W] bool).
+
+    With ``identity`` a pixel's loss is the minimum over the warped and the unwarped (identity) errors:
+    an auto-masked pixel, or one no source sees, keeps its identity error (a constant without gradient)
+    and stays in the mean, so no depth is rewarded for dropping its pixel out of the loss (out of view,
+    or onto the identity warp that depth at infinity gives). Without ``identity`` only the pixels some
+    source sees are counted.
+    """
+    best, use = min_reprojection(errors, identity)
+    if identity is None or not identity.shape[1]:
+        return best, use
+    return torch.where(use, best, identity.min(1, keepdim=True)[0]), torch.ones_like(use)
+
+
 @dataclass(frozen=True)
 class PhotometricConfig:
     """Settings of `PhotometricLoss` (monodepth2 defaults)."""
@@ -187,11 +203,12 @@ class PhotometricLoss(nn.Module):
                 seen = seen & (inverse_warp(src_mask, depth.detach(), rays, model, pose)[0] > 0.999)
             err = photometric_error(warped, target, self.config.alpha)
             errors.append(torch.where(seen, err, torch.full_like(err, UNSEEN)))
-        best, use = min_reprojection(torch.cat(errors, 1), None if identity is None else identity.repeat(g, 1, 1, 1))
+        loss, counted = pixel_loss(torch.cat(errors, 1), None if identity is None else identity.repeat(g, 1, 1, 1))
+        counted = counted & (rays.abs().sum(1, keepdim=True) > 0)  # no ray: outside the target's field of view
         if mask is not None:
-            use = use & mask.to(torch.bool).expand(b, -1, -1, -1).repeat(g, 1, 1, 1)
-        best, use = best.reshape(g, -1), use.reshape(g, -1)
-        return (best * use).sum(1) / use.sum(1).clamp(min=1)
+            counted = counted & mask.to(torch.bool).expand(b, -1, -1, -1).repeat(g, 1, 1, 1)
+        loss, counted = loss.reshape(g, -1), counted.reshape(g, -1)
+        return torch.where(counted, loss, torch.zeros_like(loss)).sum(1) / counted.sum(1).clamp(min=1)
 
     def forward(self, depths: Sequence[Tensor], target: Tensor, rays: Tensor, sources: Sequence[SourceView],
                 mask: Tensor | None = None) -> Tensor:

@@ -37,6 +37,7 @@ class Arm:
     name: str
     prior_input: bool
     prior_weight: float | None
+    prior_loss: str = "l1"  # "l1": lambda * |D - D_p| (the paper); "log_l1": lambda * |log D - log D_p|
 
 
 SUPERVISED_ARMS = (
@@ -44,11 +45,12 @@ SUPERVISED_ARMS = (
     Arm("+ input", True, None),
     Arm("+ input & L1", True, DEFAULT_WEIGHT),
 )
+SELF_PRIOR_LOSS, SELF_PRIOR_WEIGHT = "log_l1", 0.05  # the self-supervised arms' prior loss (see `prior_term`)
 SELF_SUPERVISED_ARMS = (
     Arm("baseline", False, None),
     Arm("+ input", True, None),
-    Arm("+ L1", False, DEFAULT_WEIGHT),
-    Arm("+ input & L1", True, DEFAULT_WEIGHT),
+    Arm("+ L1", False, SELF_PRIOR_WEIGHT, SELF_PRIOR_LOSS),
+    Arm("+ input & L1", True, SELF_PRIOR_WEIGHT, SELF_PRIOR_LOSS),
 )
 
 
@@ -85,10 +87,19 @@ def supervised_loss(out: dict, gt: Tensor, scales: tuple[int, ...]) -> Tensor:
     return total / len(scales)
 
 
-def prior_term(out: dict, prior: Tensor, valid: Tensor, scales: tuple[int, ...], weight: float) -> Tensor:
-    """The prior loss lambda * L1(D, D_p) averaged over the output scales."""
-    loss = PriorL1Loss(weight=weight)
-    return sum(loss(out[("depth", s)], prior, valid) for s in scales) / len(scales)
+def prior_term(out: dict, prior: Tensor, valid: Tensor, scales: tuple[int, ...], weight: float,
+               form: str = "l1") -> Tensor:
+    """The prior loss averaged over the output scales: lambda * L1(D, D_p) (``form="l1"``, the paper's), or
+    lambda * L1(log D, log D_p) (``"log_l1"``: scale-free, comparable in size with a photometric loss)."""
+    if form not in ("l1", "log_l1"):
+        raise ValueError(f"prior loss form must be 'l1' or 'log_l1', got {form!r}")
+    if form == "l1":
+        loss = PriorL1Loss(weight=weight)
+        return sum(loss(out[("depth", s)], prior, valid) for s in scales) / len(scales)
+    target = prior if valid is None else torch.where(valid.to(torch.bool), prior, torch.zeros_like(prior))
+    if not bool((target > 0).any()):
+        return out[("depth", scales[0])].sum() * 0.0
+    return weight * supervised_loss(out, target, scales)  # the prior as sparse log-depth supervision
 
 
 class SelfSupervision:
@@ -146,17 +157,49 @@ class SelfSupervision:
         return self.loss(depths, rgb, self.rays, self.sources(k, rgb), self.masks)
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """Optimiser settings of `train_arm`: Adam at ``lr`` after a linear warm-up over ``warmup`` steps, x0.2
+    after 75 % of the steps, gradients clipped to a total norm of ``clip`` (None: not clipped)."""
+
+    lr: float = 2e-4
+    warmup: int = 0
+    clip: float | None = None
+
+    def factor(self, step: int, steps: int) -> float:
+        """Learning-rate multiplier at ``step`` (0-based) of ``steps``."""
+        warm = min(1.0, (step + 1) / self.warmup) if self.warmup else 1.0
+        return warm * (0.2 if step >= int(steps * 0.75) else 1.0)
+
+
+SELF_SCHEDULE = Schedule(lr=1e-3, warmup=20, clip=1.0)  # the self-supervised recipe, every arm alike
+SELF_INITIAL_DEPTH_M = 10.0  # self-supervised nets start predicting this depth everywhere
+
+
+def start_at_depth(net: DepthNet, depth_m: float) -> None:
+    """Set the depth heads' biases so that a zero input to them gives ``depth_m`` (a view-synthesis loss
+    only sees matches a few pixels from the current depth: a random net's start, 1 / (mean of the
+    disparity range), is too near)."""
+    sig = (1.0 / depth_m - 1.0 / net.max_depth) / (1.0 / net.min_depth - 1.0 / net.max_depth)
+    with torch.no_grad():
+        for head in net.decoder.heads.values():
+            head.bias.fill_(math.log(sig / (1.0 - sig)))
+
+
 def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: int, seed: int,
-              prior_weight: float | None, lr: float = 2e-4, self_supervision: SelfSupervision | None = None) -> float:
+              prior_weight: float | None, lr: float = 2e-4, self_supervision: SelfSupervision | None = None,
+              schedule: Schedule | None = None, prior_loss: str = "l1") -> float:
     """Train in place for `steps` steps of one frame (all cameras); returns seconds spent.
 
     The loss is the LiDAR-like supervised loss, or with ``self_supervision`` the view-synthesis loss;
-    ``prior_weight`` adds lambda * L1(D, D_p).
+    ``prior_weight`` adds the prior loss (`prior_term` of form ``prior_loss``). ``schedule`` (default: Adam
+    at ``lr``, no warm-up, no clipping) sets the optimiser.
     """
+    schedule = schedule or Schedule(lr=lr)
     rgb, sup, prior, valid = frame_tensors(seq, train_frames)
     n = len(seq.cameras)
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=[int(steps * 0.75)], gamma=0.2)
+    opt = torch.optim.Adam(net.parameters(), lr=schedule.lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: schedule.factor(i, steps))
     order = np.random.default_rng(seed).integers(0, len(train_frames), size=steps)
     net.train()
     t0 = time.perf_counter()
@@ -168,9 +211,11 @@ def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: i
         else:
             loss = self_supervision(out, train_frames[int(k)], rgb[sl], net.scales)
         if prior_weight:
-            loss = loss + prior_term(out, prior[sl], valid[sl], net.scales, prior_weight)
+            loss = loss + prior_term(out, prior[sl], valid[sl], net.scales, prior_weight, prior_loss)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        if schedule.clip is not None:
+            torch.nn.utils.clip_grad_norm_(net.parameters(), schedule.clip)
         opt.step()
         sched.step()
     return time.perf_counter() - t0
