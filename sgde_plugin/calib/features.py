@@ -63,6 +63,9 @@ def mark_fixed(frames: list[Keypoints], radius_px: float = 1.0, min_cosine: floa
                     k.fixed[a] = bool(cos.max() >= min_cosine)
 
 
+SIFT_UPSCALE_OFFSET_PX = 0.25
+
+
 def to_gray(image: np.ndarray) -> np.ndarray:
     """uint8 grey image of an RGB (or grey) image."""
     img = np.asarray(image)
@@ -85,14 +88,13 @@ def sift_features(
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
         if mask is not None:
             mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
-    # OpenCV's default 2x upscale of octave -1 maps pixel x to 2x + 0.5 and reports every keypoint 0.25 px
-    # right of and below where it is (measured on blobs at known sub-pixel centres: +0.249 / +0.249 px); the
-    # precise upscale maps x to 2x and leaves no offset (+0.001 px).
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold, enable_precise_upscale=True)
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
     kps, desc = sift.detectAndCompute(gray, mask)
     if desc is None or not kps:
         return Keypoints(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0))
-    uv = np.array([k.pt for k in kps], dtype=np.float64)
+    # OpenCV's 2x upscale of octave -1 maps pixel x to 2x + 0.5, so every keypoint is reported 0.25 px right of
+    # and below where it is (blobs at known sub-pixel centres: +0.249 / +0.249 px, all octaves)
+    uv = np.array([k.pt for k in kps], dtype=np.float64) - SIFT_UPSCALE_OFFSET_PX
     size = np.array([k.size for k in kps], dtype=np.float64) / scale
     if scale != 1.0:
         uv = (uv + 0.5) / scale - 0.5  # pixel-centre convention
