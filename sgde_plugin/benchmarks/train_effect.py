@@ -54,6 +54,7 @@ from ..nn.sequence import RigSequence, lidar_pattern, overlap_masks
 from ..nn.train import (
     MAX_DEPTH_EVAL,
     SELF_INITIAL_DEPTH_M,
+    SELF_PRIOR_ENCODING,
     SELF_SCHEDULE,
     SELF_SUPERVISED_ARMS,
     SUPERVISED_ARMS,
@@ -274,7 +275,8 @@ def run_seed(seed: int, size: tuple[int, int], steps: int, n_train: int, n_test:
     if supervision == "self":
         start_at_depth(init, SELF_INITIAL_DEPTH_M)
     arms = SELF_SUPERVISED_ARMS if supervision == "self" else SUPERVISED_ARMS
-    nets = arm_nets(init, arms, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem)
+    nets = arm_nets(init, arms, validity=validity, prior_max_depth=MAX_DEPTH_EVAL, stem=stem,
+                    prior_encoding=SELF_PRIOR_ENCODING if supervision == "self" else "depth")
     self_sup = SelfSupervision(seq) if supervision == "self" else None
     plan = [(arm.name, nets[arm.name], arm.prior_weight, arm.prior_loss, self_sup) for arm in arms]
     if self_sup is not None:
