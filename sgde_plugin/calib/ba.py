@@ -9,8 +9,9 @@ of the predicted direction onto the ray's tangent plane, 2 tan(angle / 2), which
 towards the antipode, so no point can settle behind its camera) times the camera's pixels per
 radian, divided by each observation's sigma, so pinholes and fisheyes share one model.
 
-Solver: Levenberg-Marquardt on the normal equations with the points eliminated per point (Schur
-complement, the standard bundle-adjustment reduction), analytic Jacobians, the soft-L1 loss by
+Solver (`schur.py`; this module holds the model and the passes): Levenberg-Marquardt on the normal
+equations with the points eliminated per point (Schur complement, the standard bundle-adjustment
+reduction), analytic Jacobians, the soft-L1 loss by
 iteratively reweighted least squares, and a safeguarded Gauss-Newton step per point after each pose
 step. SciPy's `least_squares(jac_sparsity=...)` with its LSMR trust-region solver was tried first: on
 5,000 points it used its 200 evaluations in 180 s without converging; this solver needs seconds.
@@ -48,6 +49,7 @@ import numpy as np
 
 from ..geometry import invert_transform, make_transform, rodrigues, rotation_vector, skew
 from .focal import FocalMap
+from .schur import covariance, lm_step
 
 _LOG = logging.getLogger(__name__)
 
@@ -136,8 +138,8 @@ class AdjustResult:
     state: _State | None = field(default=None, repr=False)
     rotation_cov: np.ndarray | None = field(default=None, repr=False)  # (M, M, 3, 3), see relative_rotation_sigma_deg
     focal_scale: np.ndarray | None = None  # (M,) with `AdjustConfig.refine_focal`
-    focal_scale_sigma: np.ndarray | None = None  # (M,) 1-sigma of the free estimates (set by `robust_adjust`)
-    focal_scale_free: np.ndarray | None = None  # (M,) the estimates before the significance test (robust_adjust)
+    focal_scale_sigma: np.ndarray | None = None  # (M,) 1-sigma of the free estimates (robust_adjust)
+    focal_scale_free: np.ndarray | None = None  # (M,) free estimates, before the significance test (robust_adjust)
 
 
 def triangulate_midpoint(
@@ -447,31 +449,6 @@ class _Problem:
         rho, _ = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
         return float(np.sum(rho) + sum(float(x @ x) for x, _ in self.prior_terms(st)))
 
-    def step(self, st: _State, lam: float) -> tuple[_State, float]:
-        """One damped Gauss-Newton step (Schur complement on the points); returns the trial state."""
-        o, n = self.obs, self.n_full
-        K = st.P.shape[0]
-        S, rhs, Hpl, Hll_inv, gl = self.reduced_system(st, lam)
-        keep = self.solve_idx
-        dp = np.zeros(n)
-        dp[keep] = np.linalg.solve(S[np.ix_(keep, keep)], rhs[keep])
-        back = np.zeros((K, 3))
-        np.add.at(back, o.point, (np.swapaxes(Hpl, 1, 2) @ dp[self.pose_idx][:, :, None])[:, :, 0])
-        dl = -(Hll_inv @ (gl + back)[:, :, None])[:, :, 0]
-        trial = self.apply(st, dp, dl)
-        for _ in range(self.cfg.point_iterations):
-            self.refine_points(trial)
-        return trial, float(np.abs(dp[keep]).max(initial=0.0))
-
-    def covariance(self, st: _State) -> np.ndarray:
-        """Covariance (n_full, n_full) of the pose (and focal-scale) increments at `st`, from the Gauss-Newton
-        information with the points eliminated and the priors included (zero for fixed unknowns)."""
-        S, *_ = self.reduced_system(st, 1e-9)  # a trace of damping keeps points at infinity invertible
-        keep = self.solve_idx
-        cov = np.zeros((self.n_full, self.n_full))
-        cov[np.ix_(keep, keep)] = np.linalg.pinv(S[np.ix_(keep, keep)])
-        return cov
-
     def focal_scale_sigma(self, cov: np.ndarray) -> np.ndarray | None:
         """1-sigma (M,) of each camera's focal scale from `covariance`; None when they are not refined."""
         if self.maps is None:
@@ -479,66 +456,15 @@ class _Problem:
         d = np.diag(cov)[self.f_idx : self.f_idx + self.M]
         return np.sqrt(np.maximum(d, 0.0))
 
-    def camera_rotation_covariance(self, st: _State, cov: np.ndarray | None = None) -> np.ndarray:
-        """Covariance (M, M, 3, 3) of the cameras' rotation increments (rad^2; zero for the reference camera)
-        at `st` (from `covariance`)."""
-        cov = self.covariance(st) if cov is None else cov
+    def camera_rotation_covariance(self, cov: np.ndarray) -> np.ndarray:
+        """The cameras' rotation blocks (M, M, 3, 3) of a covariance of the increments (`schur.covariance`):
+        rad^2, zero for the reference camera."""
         out = np.zeros((self.M, self.M, 3, 3))
         idx = {m: 6 * self.T + 6 * s_ for s_, m in enumerate(self.others)}
         for a, ia in idx.items():
             for b, ib in idx.items():
                 out[a, b] = cov[ia : ia + 3, ib : ib + 3]
         return out
-
-    def reduced_system(self, st: _State, lam: float):
-        """The damped normal equations of the poses with the points eliminated (Schur complement): S, the
-        right-hand side, and what the point back-substitution needs (Hpl, Hll^-1, gl)."""
-        o, n = self.obs, self.n_full
-        K = st.P.shape[0]
-        r, Jp, Jl = self.obs_terms(st, jacobians=True)
-        _, w = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
-        Jl_wT = np.swapaxes(Jl * w[:, None, None], 1, 2)
-        Jp_wT = np.swapaxes(Jp * w[:, None, None], 1, 2)
-        Hll = np.zeros((K, 3, 3))
-        np.add.at(Hll, o.point, Jl_wT @ Jl)
-        gl = np.zeros((K, 3))
-        np.add.at(gl, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
-        Hpp = np.bincount(self.flat_pp, weights=(Jp_wT @ Jp).ravel(), minlength=n * n).reshape(n, n).astype(float)
-        gp = np.bincount(self.pose_idx.ravel(), weights=(Jp_wT @ r[:, :, None]).ravel(), minlength=n).astype(float)
-        for x, blocks in self.prior_terms(st):
-            for ia, Ja in blocks:
-                gp[ia : ia + Ja.shape[1]] += Ja.T @ x
-                for ib, Jb in blocks:
-                    Hpp[ia : ia + Ja.shape[1], ib : ib + Jb.shape[1]] += Ja.T @ Jb
-        Hll_d = Hll + lam * np.einsum("kii->ki", Hll)[:, :, None] * np.eye(3)[None] + 1e-12 * np.eye(3)[None]
-        Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(n)
-        Hll_inv = np.linalg.inv(Hll_d)
-        Hpl = Jp_wT @ Jl  # (N, 12, 3)
-        # Schur complement: S = Hpp - sum over observation pairs (i, j) of one point of Hpl_i Hll^-1 Hpl_j^T
-        i, j = self.pair_i, self.pair_j
-        blocks = (Hpl[i] @ Hll_inv[o.point[i]]) @ np.swapaxes(Hpl[j], 1, 2)
-        S = Hpp_d - np.bincount(self.flat_ij, weights=blocks.ravel(), minlength=n * n).reshape(n, n)
-        v = (Hll_inv @ gl[:, :, None])[:, :, 0]
-        rhs = -gp + np.bincount(self.pose_idx.ravel(), weights=(Hpl @ v[o.point][:, :, None]).ravel(), minlength=n)
-        return S, rhs, Hpl, Hll_inv, gl
-
-    def refine_points(self, st: _State) -> None:
-        """One Gauss-Newton step per point with the poses held, kept only where it lowers that point's cost."""
-        o = self.obs
-        K = st.P.shape[0]
-        r, _, Jl = self.obs_terms(st, jacobians=True)
-        _, w = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
-        Jl_wT = np.swapaxes(Jl * w[:, None, None], 1, 2)
-        H = np.zeros((K, 3, 3))
-        np.add.at(H, o.point, Jl_wT @ Jl)
-        g = np.zeros((K, 3))
-        np.add.at(g, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
-        H += 1e-9 * np.einsum("kii->k", H)[:, None, None] * np.eye(3)[None] + 1e-12 * np.eye(3)[None]
-        before = self.point_costs(r, K)
-        old_m, old_rho = st.m, st.rho
-        self.move_points(st, -np.linalg.solve(H, g[:, :, None])[:, :, 0])
-        worse = self.point_costs(self.obs_terms(st, jacobians=False), K) > before
-        st.m[worse], st.rho[worse] = old_m[worse], old_rho[worse]
 
     @staticmethod
     def move_points(st: _State, dl: np.ndarray) -> None:
@@ -549,11 +475,6 @@ class _Problem:
         # no clamp at 0: the model uses the direction of rho * P, continuous through infinity (homogeneous
         # coordinates); a far point may end slightly "beyond infinity" within its noise
         st.rho = st.rho + dl[:, 2]
-
-    def point_costs(self, r: np.ndarray, n_points: int) -> np.ndarray:
-        """Robust cost of each point's observations."""
-        rho, _ = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
-        return np.bincount(self.obs.point, weights=rho, minlength=n_points)
 
     def apply(self, st: _State, dp: np.ndarray, dl: np.ndarray) -> _State:
         """A new state moved by pose increments `dp` and point increments `dl`."""
@@ -609,7 +530,7 @@ def adjust(
     converged, message, it = False, "iteration limit reached", 0
     while it < cfg.max_iterations:
         it += 1
-        trial, step_size = prob.step(st, lam)
+        trial, step_size = lm_step(prob, st, lam)
         new_cost = prob.cost(trial)
         if np.isfinite(new_cost) and new_cost <= cost:
             decrease = cost - new_cost
@@ -684,25 +605,6 @@ def _adjust_captured(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, obs: O
     return again
 
 
-def _keep_significant_focal(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, res, focal_maps):
-    """Keep the focal scales that differ from 1 by at least `cfg.focal_min_sigmas` of their 1-sigma; the
-    others go back to 1 and the last pass is re-run (warm) without them. Returns the result (its
-    `focal_scale_free` / `focal_scale_sigma`: the free estimates and their sigma) and the maps kept."""
-    prob, st = _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, res, None, focal_maps)
-    free, sigma = prob.focal_scales(st).copy(), prob.focal_scale_sigma(prob.covariance(st))
-    weak = ~(np.abs(free - 1.0) >= cfg.focal_min_sigmas * sigma)
-    kept_maps = [None if weak[m] else fm for m, fm in enumerate(focal_maps)]
-    if weak.any():
-        res.state.s = np.where(weak, 1.0, free)
-        res = adjust(sensor_to_ego, ego_to_world, obs, focal, reference, config=cfg, start=res, focal_maps=kept_maps)
-        _LOG.debug("focal scales kept for %d of %d cameras; refit: %d iterations, %s", int((~weak).sum()),
-                   weak.size, res.iterations, res.message)
-    else:
-        res.iterations = 0
-    res.focal_scale_free, res.focal_scale_sigma = free, sigma
-    return res, kept_maps
-
-
 def relative_rotation_sigma_deg(rotation_cov: np.ndarray, a: int, b: int) -> float:
     """1-sigma (largest axis, degrees) of the relative rotation of cameras a and b from `AdjustResult.rotation_cov`:
     how well the images and priors determine it (large when a camera hangs on degenerate observations)."""
@@ -762,9 +664,37 @@ def robust_adjust(
     above `fine_reject_sigma` sigmas are dropped and pass 3, the final adjustment, uses the configured
     loss (soft-L1 by default, the paper's near-L1). Passes warm-start from the previous one and share
     one iteration budget.
+
+    Focal lengths (`config.refine_focal` with `focal_maps`): the passes run first with every camera's
+    focal-length scale free (prior `config.sigma_focal`), which estimates each with its 1-sigma. A scale
+    that differs from 1 by at least `config.focal_min_sigmas` sigmas is adopted. When all are, that is
+    the result; when none is, the passes are run again with the rig's intrinsics (the result is then the
+    fixed-intrinsics one, unchanged); otherwise again with the adopted cameras' scales free and the others
+    at 1. `focal_scale_free` / `focal_scale_sigma` report the free estimates either way; `iterations`
+    counts the passes of the result only (each run has the full iteration limit).
     """
     cfg = config or AdjustConfig()
     sch = schedule or RobustSchedule()
+    if not (cfg.refine_focal and focal_maps is not None and any(fm is not None for fm in focal_maps)):
+        return _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, None)[:2]
+    res, kept, _ = _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, focal_maps)
+    if res.focal_scale is None or res.focal_scale_sigma is None:
+        return res, kept
+    free, sigma = res.focal_scale.copy(), res.focal_scale_sigma.copy()
+    adopt = np.array([fm is not None for fm in focal_maps]) & (np.abs(free - 1.0) >= cfg.focal_min_sigmas * sigma)
+    _LOG.debug("focal scales: free %s, sigma %s, adopted %s", free, sigma, adopt)
+    if not adopt.all():
+        maps = [fm if adopt[m] else None for m, fm in enumerate(focal_maps)] if adopt.any() else None
+        res, kept, _ = _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, maps)
+        if maps is None:
+            res.focal_scale = np.ones_like(free)
+    res.focal_scale_free, res.focal_scale_sigma = free, sigma
+    return res, kept
+
+
+def _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, focal_maps):
+    """The passes of `robust_adjust` (focal scales free for the cameras whose map is given): the result, the
+    kept input observations and the final observations."""
     budget = cfg.max_iterations
     n_input = len(obs)
     # observations that disagree with their track's consensus point at the initial poses are mismatches
@@ -802,18 +732,13 @@ def robust_adjust(
         used += res.iterations
         _LOG.debug("pass: limit %s, loss %s, %d iterations, %s, %d observations", limit, stage_cfg.loss,
                    res.iterations, res.message, len(cur_obs))
-    if len(cur_obs) and cfg.refine_focal and focal_maps is not None and budget - used > 0:
-        res, focal_maps = _keep_significant_focal(sensor_to_ego, ego_to_world, cur_obs, focal, reference,
-                                                  replace(cfg, max_iterations=budget - used), res, focal_maps)
-        used += res.iterations
     res.iterations = used
     if len(cur_obs):
         prob, st = _problem_and_start(sensor_to_ego, ego_to_world, cur_obs, focal, reference, cfg, res, None,
                                       focal_maps)
-        cov = prob.covariance(st)
-        res.rotation_cov = prob.camera_rotation_covariance(st, cov)
-        if res.focal_scale_sigma is None:
-            res.focal_scale_sigma = prob.focal_scale_sigma(cov)
+        cov = covariance(prob, st)
+        res.rotation_cov = prob.camera_rotation_covariance(cov)
+        res.focal_scale_sigma = prob.focal_scale_sigma(cov)
     kept = np.zeros(n_input, dtype=bool)
     kept[kept_idx] = True
-    return res, kept
+    return res, kept, cur_obs

@@ -6,6 +6,11 @@ input extrinsics), is calibrated, and is accepted or rejected by the paper's rul
 keeps the last accepted calibration. The returned rig carries the last accepted calibration and a
 `calibration` block whose `history` lists every accepted calibration with the timestamp from which
 it applies (`calibration_at` looks one up); history from an input rig's block is carried forward.
+With `AdjustConfig.refine_focal` (the default, `glc` only) a calibration also refines each camera's focal
+length where the images determine it (see `ba.robust_adjust`): the rig carries the refined intrinsics
+(fx, fy scaled; an ocam model's polynomials), each window's report lists every camera's estimate, its
+1-sigma and whether it was adopted (`focal`), and a history entry that changed any keeps the window's
+intrinsics (`intrinsics_at`); the next window starts from them.
 The block's top-level `accepted` is true when at least one window of this run was accepted; each
 entry of `windows` has its own verdict, the rule that fired and a one-line reason.
 """
@@ -147,7 +152,8 @@ def calibrate(
     matcher: str = "sift",
     **options: Any,
 ) -> tuple[Rig, dict]:
-    """Calibrate the extrinsics of a rig over windows of its frames; returns the refined rig and its report.
+    """Calibrate the extrinsics (and focal lengths, AdjustConfig.refine_focal) of a rig over windows of its
+    frames; returns the refined rig and its report.
 
     images(frame_id, camera) -> RGB image (default: the rig folder's files). Options: window (T, default
     7; a shorter last window, or a rig with fewer frames, is calibrated with what it has), loftr_weights,
