@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -13,8 +13,9 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..progress import progress
-from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_descriptors, sift_features
-from .outliers import epipolar_angle_deg, essential_inliers
+from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_descriptors, sift_features, to_gray
+from .guided import GuidedConfig, guided_search
+from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
 from .views import VirtualView, overlap_view
 
@@ -46,11 +47,15 @@ class MatchConfig:
     view_upsample: float = 1.0
     view_pair_scale: str = "min"
     cross_time: bool = True
+    guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
+    consensus_px: float = 1.5
+    guided_cross_time: bool = True
+    guided: GuidedConfig = field(default_factory=GuidedConfig)
     seed: int = 0
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return {k: (vars(getattr(self, k)) if k == "guided" else getattr(self, k)) for k in self.__dataclass_fields__}
 
 
 @dataclass(frozen=True)
@@ -150,10 +155,12 @@ class Tentative:
 
 @dataclass
 class Verified:
-    """The verified correspondences of one observation pair and its counts (`part` is None when none)."""
+    """The verified correspondences of one observation pair and its counts (`part` is None when none);
+    `guided`: guided matches were added (`guided.py`)."""
 
     pair: ObservationPair
     part: dict[str, np.ndarray] | None
+    guided: bool = False
 
 
 def find_correspondences(
@@ -185,33 +192,69 @@ def find_correspondences(
     grids = predict_overlaps(cams, pairs, ego_of, cfg, timings)
     images = _ImageCache(image)
     loftr = load_loftr(cfg.loftr_weights) if cfg.matcher == "loftr" else None
-    feats = None
+    feats, view_images = None, {}
     if loftr is None:
         involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
-        feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress)
+        feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress, view_images)
     poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
     match = (lambda a, b, t, t2: _sift_tentative(feats, grids, a, b, t, t2, cfg)) if loftr is None else (
         lambda a, b, t, t2: _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg))
-    verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress)
+    densify = None
+    if loftr is None and cfg.guided_below > 0:
+        def densify(a: str, b: str, t: int, t2: int, rel: np.ndarray, tent: Tentative) -> Tentative | None:
+            return _guided_tentative(feats, view_images, grids, cams, a, b, t, t2, rel, tent, cfg)
+    verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress, densify)
+    if densify is not None:
+        t0 = time.perf_counter()
+        verified = {(a, b): _consistent(cams[a], cams[b], verified[(a, b)], poses[a], poses[b], cfg)
+                    for a, b in pairs}
+        timings.add("ransac", t0)
     return [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
 
 
 def _verify_all(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], T: int, poses: dict[str, np.ndarray],
                 match: Callable[[str, str, int, int], Tentative], cfg: MatchConfig, timings: Timings,
-                show_progress: bool | None) -> dict[tuple[str, str], list[Verified]]:
-    """Tentative matches and verification of every observation pair (all T x T, or same-frame only)."""
+                show_progress: bool | None, densify: Callable | None = None) -> dict[tuple[str, str], list[Verified]]:
+    """Tentative matches and verification of every observation pair (all T x T, or same-frame only). A camera
+    pair none of whose observation pairs reached `cfg.guided_below` inliers (a narrow overlap) is matched
+    again with `densify` added to every observation pair."""
     rng = np.random.default_rng(cfg.seed)
     verified: dict[tuple[str, str], list[Verified]] = {(a, b): [] for a, b in pairs}
+    tentative: dict[tuple[str, str], list[Tentative]] = {(a, b): [] for a, b in pairs}
     jobs = [(a, b, t, t2) for a, b in pairs for t in range(T) for t2 in range(T) if cfg.cross_time or t == t2]
     for a, b, t, t2 in progress(jobs, desc="calibrate: matching", total=len(jobs), enabled=show_progress):
         t0 = time.perf_counter()
         tent = match(a, b, t, t2)
         timings.add("matching", t0)
         t0 = time.perf_counter()
-        rel = np.linalg.inv(poses[b][t2]) @ poses[a][t]  # cam a at t -> cam b at t2 (initial)
-        verified[(a, b)].append(verify_observation_pair(cams[a], cams[b], t, t2, tent, rel, cfg, rng))
+        verified[(a, b)].append(verify_observation_pair(cams[a], cams[b], t, t2, tent, _rel(poses, a, b, t, t2), cfg,
+                                                        rng))
+        tentative[(a, b)].append(tent)
         timings.add("ransac", t0)
+    if densify is None:
+        return verified
+    for a, b in pairs:
+        if max((v.pair.inliers for v in verified[(a, b)]), default=0) >= cfg.guided_below:
+            continue
+        for k, (v, tent) in enumerate(zip(verified[(a, b)], tentative[(a, b)])):
+            t, t2 = v.pair.t, v.pair.t2
+            if not (cfg.guided_cross_time or t == t2):
+                continue
+            t0 = time.perf_counter()
+            more = densify(a, b, t, t2, _rel(poses, a, b, t, t2), tent)
+            timings.add("matching", t0)
+            if more is not None and len(more.uv_a):
+                t0 = time.perf_counter()
+                verified[(a, b)][k] = verify_observation_pair(cams[a], cams[b], t, t2, _joined(tent, more),
+                                                              _rel(poses, a, b, t, t2), cfg, rng)
+                verified[(a, b)][k].guided = True
+                timings.add("ransac", t0)
     return verified
+
+
+def _rel(poses: dict[str, np.ndarray], a: str, b: str, t: int, t2: int) -> np.ndarray:
+    """Starting relative pose: camera a at frame t -> camera b at frame t2."""
+    return np.linalg.inv(poses[b][t2]) @ poses[a][t]
 
 
 def capture_poses(ego_to_world: np.ndarray, n_cameras: int) -> np.ndarray:
@@ -251,10 +294,10 @@ def predict_overlaps(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], 
 def detect_features(
     cams: dict[str, Camera], involved: Sequence[str], grids: dict[tuple[str, str], OverlapGrid], T: int,
     images: Callable[[int, str], np.ndarray], masks: dict[str, np.ndarray] | None, cfg: MatchConfig,
-    timings: Timings, show_progress: bool | None,
+    timings: Timings, show_progress: bool | None, view_images: dict | None = None,
 ) -> dict[tuple[int, str, str], Keypoints]:
     """SIFT keypoints per (frame, camera, neighbour): on the raw image inside the predicted overlaps, or on a
-    virtual pinhole view aimed at the overlap (fisheyes)."""
+    virtual pinhole view aimed at the overlap; `view_images`, when given, receives each view's ViewImage."""
     t0 = time.perf_counter()
     feats: dict[tuple[int, str, str], Keypoints] = {}
     for name in progress(involved, desc="calibrate: features", enabled=show_progress):
@@ -275,7 +318,9 @@ def detect_features(
                 for o in raw:
                     feats[(t, name, o)] = kp
             for slot, (o, view) in enumerate(views.items()):
-                feats[(t, name, o)] = _view_features(cam, view, picture, static, slot, cfg)
+                feats[(t, name, o)], vim = _view_features(cam, view, picture, static, slot, cfg)
+                if view_images is not None:
+                    view_images[(t, name, o)] = vim
         if cfg.cross_time and T > 1:
             for o in [*views, *raw[:1]]:
                 mark_fixed([feats[(t, name, o)] for t in range(T)])
@@ -348,6 +393,34 @@ def verify_observation_pair(ca: Camera, cb: Camera, t: int, t2: int, tent: Tenta
     return Verified(ObservationPair(t, t2, tentative, int(sel.size), n_inl, int(idx.size)), part)
 
 
+def _consistent(ca: Camera, cb: Camera, verified: list[Verified], poses_a: np.ndarray, poses_b: np.ndarray,
+                cfg: MatchConfig) -> list[Verified]:
+    """Guided observation pairs keep only the matches that agree with one mount of the camera pair fitted
+    to all its verified matches (`outliers.mount_consensus`); their counts become those matches."""
+    parts = [v for v in verified if v.part is not None]
+    if not any(v.guided for v in parts):
+        return verified
+    rel0 = np.concatenate([np.repeat((np.linalg.inv(poses_b[v.pair.t2]) @ poses_a[v.pair.t])[None],
+                                     v.part["ra"].shape[0], axis=0) for v in parts])
+    focal = min(pixels_per_radian(ca.intrinsics), pixels_per_radian(cb.intrinsics))
+    _, err = mount_consensus(rel0, np.concatenate([v.part["ra"] for v in parts]),
+                             np.concatenate([v.part["rb"] for v in parts]), focal)
+    out, start = [], 0
+    ends = {id(v): (start := start + v.part["ra"].shape[0]) for v in parts}
+    for v in verified:
+        if v.part is None or not v.guided:
+            out.append(v)
+            continue
+        n = v.part["ra"].shape[0]
+        ok = np.abs(err[ends[id(v)] - n:ends[id(v)]]) <= cfg.consensus_px
+        k = int(ok.sum())
+        inliers = k if v.pair.inliers <= n else int(round(v.pair.inliers * k / n))
+        counts = replace(v.pair, inliers=inliers, kept=k if k >= cfg.min_per_view_pair else 0)
+        part = {key: val[ok] for key, val in v.part.items()} if k >= cfg.min_per_view_pair else None
+        out.append(Verified(counts, part, True))
+    return out
+
+
 def assemble_pair(a: str, b: str, verified: Sequence[Verified]) -> PairMatches:
     """One PairMatches from the verified observation pairs of camera pair (a, b)."""
     parts = [(v.pair, v.part) for v in verified if v.part is not None]
@@ -373,17 +446,68 @@ def assemble_pair(a: str, b: str, verified: Sequence[Verified]) -> PairMatches:
 _VIEW_INDEX_OFFSET = 1_000_000  # keypoint ids of the n-th virtual view of an image start at (n + 1) * this
 
 
+@dataclass
+class ViewImage:
+    """A virtual view of one image: the view, its grey pixels and where they are usable (data, not masked)."""
+
+    view: VirtualView
+    gray: np.ndarray
+    usable: np.ndarray
+
+
 def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np.ndarray | None, slot: int,
-                   cfg: MatchConfig) -> Keypoints:
-    """SIFT on a virtual pinhole view, mapped back to the fisheye's pixels (sizes in its centre's pixels)."""
+                   cfg: MatchConfig) -> tuple[Keypoints, ViewImage]:
+    """SIFT on a virtual pinhole view, mapped back to the camera's pixels (sizes in its centre's pixels)."""
     mask = view.valid.copy()
     if static is not None:
         mask &= view.warp(static.astype(np.uint8), cv2.INTER_NEAREST) > 0
-    kv = sift_features(view.warp(image), mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
+    gray = to_gray(view.warp(image))
+    kv = sift_features(gray, mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
     uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
     scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])
     return Keypoints(uv[ok], kv.desc[ok], kv.size[ok] * scale, kv.index[ok] + (slot + 1) * _VIEW_INDEX_OFFSET,
-                     kv.fixed[ok])
+                     kv.fixed[ok], kv.uv[ok]), ViewImage(view, gray, mask)
+
+
+def _rotation4(R: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = R
+    return out
+
+
+def _guided_tentative(feats: dict, view_images: dict, grids: dict, cams: dict[str, Camera], a: str, b: str, t: int,
+                      t2: int, rel: np.ndarray, tent: Tentative, cfg: MatchConfig) -> Tentative | None:
+    """Guided matches of a's keypoints not matched in `tent`, searched in b's view along the epipolar band of
+    the starting relative pose `rel` (a at t -> b at t2); None without views on both sides."""
+    va, vb = view_images.get((t, a, b)), view_images.get((t2, b, a))
+    if va is None or vb is None:
+        return None
+    fa = feats[(t, a, b)]
+    keep = grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | ~fa.fixed) & ~np.isin(fa.index, tent.kp_a)
+    keep[np.flatnonzero(keep)[~_first_at_position(fa.view_uv[keep])]] = False
+    sa = fa.subset(keep)
+    rel_view = _rotation4(vb.view.R).T @ rel @ _rotation4(va.view.R)
+    idx, uv_view_b = guided_search(va.gray, va.usable, vb.gray, vb.usable, sa.view_uv,
+                                   va.view.camera.intrinsics.K, vb.view.camera.intrinsics.K, rel_view, cfg.guided)
+    uv_b, ok = cams[b].intrinsics.project(vb.view.rays_in_source(uv_view_b))
+    ok &= grids[(b, a)].lookup(t2, t, uv_b)
+    idx, uv_b = idx[ok], uv_b[ok]
+    sig = np.maximum(cfg.sigma_floor_px, sa.size[idx] * cfg.sigma_per_size)
+    return Tentative(sa.uv[idx], uv_b, sig, sig.copy(), sa.index[idx], np.full(idx.size, -1))
+
+
+def _first_at_position(uv: np.ndarray) -> np.ndarray:
+    """True for the first of keypoints at one position (SIFT repeats a keypoint for each of its orientations)."""
+    _, first = np.unique(np.round(uv, 2), axis=0, return_index=True)
+    out = np.zeros(len(uv), dtype=bool)
+    out[first] = True
+    return out
+
+
+def _joined(x: Tentative, y: Tentative) -> Tentative:
+    """Two sets of tentative matches as one."""
+    return Tentative(*(np.concatenate([getattr(x, k), getattr(y, k)]) for k in
+                       ("uv_a", "uv_b", "sigma_a", "sigma_b", "kp_a", "kp_b")))
 
 
 def _box(grid: OverlapGrid, t: int, t2: int, cam: Camera) -> tuple[int, int, int, int] | None:

@@ -19,14 +19,16 @@ if TYPE_CHECKING:  # kornia's feature zoo loads only for LoFTR
 @dataclass
 class Keypoints:
     """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels,
-    each keypoint's index in its image's full list (kept through `subset`), and `fixed`: True where the
-    same keypoint sits at the same pixel in another frame of the camera (see `mark_fixed`)."""
+    each keypoint's index in its image's full list (kept through `subset`), `fixed`: True where the
+    same keypoint sits at the same pixel in another frame of the camera (see `mark_fixed`), and, for
+    keypoints found on a virtual view, their positions in the view's pixels (`view_uv`, else None)."""
 
     uv: np.ndarray
     desc: np.ndarray
     size: np.ndarray | None = None
     index: np.ndarray | None = None
     fixed: np.ndarray | None = None
+    view_uv: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.size is None:
@@ -41,7 +43,8 @@ class Keypoints:
 
     def subset(self, keep: np.ndarray) -> Keypoints:
         """The keypoints selected by a boolean mask or index array."""
-        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep], self.fixed[keep])
+        view_uv = None if self.view_uv is None else self.view_uv[keep]
+        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep], self.fixed[keep], view_uv)
 
 
 def mark_fixed(frames: list[Keypoints], radius_px: float = 1.0, min_cosine: float = 0.9) -> None:

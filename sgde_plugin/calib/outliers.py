@@ -72,3 +72,49 @@ def essential_inliers(
     idx = np.flatnonzero(usable)
     out[idx] = mask.ravel().astype(bool)
     return out
+
+
+def _epipolar_px(d: np.ndarray, R0: np.ndarray, t0: np.ndarray, rays_a: np.ndarray, rays_b: np.ndarray,
+                 focal_px: float) -> np.ndarray:
+    """Signed epipolar distances (px) of matches under rel = D(d)^-1 rel0 per match (R0 (N, 3, 3), t0 (N, 3)),
+    D(d) a correction of camera b's mount: rotation vector d[:3], translation d[3:]."""
+    from ..geometry import rodrigues
+
+    RD = rodrigues(d[:3])
+    R = np.einsum("ji,njk->nik", RD, R0)  # RD^T R0
+    t = (t0 - d[3:]) @ RD  # RD^T (t0 - tau)
+    n = np.cross(t, np.einsum("nij,nj->ni", R, rays_a))
+    norm = np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+    return np.sum(n * rays_b, axis=1) / norm * focal_px
+
+
+def mount_consensus(rel0: np.ndarray, rays_a: np.ndarray, rays_b: np.ndarray, focal_px: float,
+                    scale_px: float = 1.0, sigma_rot_deg: float = 5.0, sigma_t_m: float = 0.1,
+                    iterations: int = 15) -> tuple[np.ndarray, np.ndarray]:
+    """One mount correction of camera b that all matches of a camera pair agree with, whatever their frames.
+
+    `rel0` (N, 4, 4): per match, the starting relative pose (camera a at its frame -> camera b at its frame,
+    from the ego motion and the starting extrinsics). The two mounts are rigid, so one correction D of b's
+    mount (3 rotation + 3 translation unknowns, weak priors of `sigma_rot_deg` / `sigma_t_m`) must explain
+    every observation pair: robust Gauss-Newton (Cauchy, `scale_px`) on the epipolar distances. A free
+    essential matrix per observation pair needs 5+ points and, in a narrow strip, fits wrong matches too;
+    this model is shared by thousands. Returns the correction (6,) and each match's distance (px) under it.
+    """
+    d = np.zeros(6)
+    R0, t0 = rel0[:, :3, :3], rel0[:, :3, 3]
+    prior = np.r_[np.full(3, 1.0 / np.radians(sigma_rot_deg)), np.full(3, 1.0 / sigma_t_m)]
+    for _ in range(iterations):
+        e = _epipolar_px(d, R0, t0, rays_a, rays_b, focal_px)
+        J = np.empty((e.size, 6))
+        for k in range(6):
+            step = np.zeros(6)
+            step[k] = 1e-6
+            J[:, k] = (_epipolar_px(d + step, R0, t0, rays_a, rays_b, focal_px) - e) / 1e-6
+        w = 1.0 / (1.0 + (e / scale_px) ** 2)  # Cauchy IRLS weights
+        H = J.T @ (J * w[:, None]) + np.diag(prior**2)
+        g = J.T @ (w * e) + prior**2 * d
+        delta = np.linalg.solve(H, -g)
+        d = d + delta
+        if np.linalg.norm(delta[:3]) < 1e-7 and np.linalg.norm(delta[3:]) < 1e-6:
+            break
+    return d, _epipolar_px(d, R0, t0, rays_a, rays_b, focal_px)
