@@ -39,6 +39,7 @@ from sgde_plugin.adapters.bevdepth import _depth_net_part
 from sgde_plugin.errors import InputError
 from sgde_plugin.geometry import camera_mount
 from sgde_plugin.nn import DepthNet
+from sgde_plugin.nn.encoding import LOG_FLOOR_M, LOG_REFERENCE_M
 
 R18_INPUTS = ("image", "prior")
 R18_OUTPUTS = ("depth",)
@@ -279,6 +280,9 @@ def build_r18(checkpoint: str | Path | None = None, image_size: tuple[int, int] 
         raise InputError(None, "--image-size", f"{h}x{w}: height and width must be multiples of 32")
     prior_max = net.encoding.max_depth
     validity = net.encoding.with_validity
+    scheme = (f"log(clip(prior_m, {LOG_FLOOR_M:g}, max_depth) / {LOG_REFERENCE_M:g}); 0 = no prior (and 10 m: "
+              "see the validity channel)"
+              if net.encoding.form == "log" else "clip(prior_m / max_depth, 0, 1); 0 = no prior")
     module = R18ForExport(net).eval()
 
     def random_inputs(batch: int, seed: int) -> tuple[Tensor, Tensor]:
@@ -300,8 +304,8 @@ def build_r18(checkpoint: str | Path | None = None, image_size: tuple[int, int] 
         "sgde.outputs": json.dumps({"depth": "float32 [B,1,H,W] metres"}),
         "sgde.input_layout": "NCHW; RGB channel order; ImageNet mean/std applied inside the graph",
         "sgde.depth_range": json.dumps([net.min_depth, net.max_depth]),
-        "sgde.prior_normalisation": json.dumps({"scheme": "clip(prior_m / max_depth, 0, 1); 0 = no prior",
-                                                "max_depth": prior_max, "validity_channel": validity}),
+        "sgde.prior_normalisation": json.dumps({"scheme": scheme, "max_depth": prior_max,
+                                                "validity_channel": validity}),
         "sgde.export_image_size": json.dumps([h, w]),
     }
     axes = {"image": {0: "batch", 2: "height", 3: "width"}, "prior": {0: "batch", 2: "height", 3: "width"},

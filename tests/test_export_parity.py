@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import onnx
 import pytest
@@ -112,3 +113,17 @@ def test_r18_with_the_factored_stem_exports_with_parity(tmp_path):
     report = export_spec(spec, tmp_path / "factored.onnx", check=True)
     assert all(r.ok for r in report["parity"])
     assert max(r.max_abs_diff / r.output_range for r in report["parity"]) <= 1e-4
+
+
+def test_r18_metadata_names_the_log_prior_encoding(tmp_path):
+    from sgde_plugin.nn import DepthNet
+
+    net = DepthNet(validity=True, prior_encoding="log")
+    ckpt = tmp_path / "log.pt"
+    torch.save({"state_dict": net.state_dict(), "config": {"validity": True, "prior_encoding": "log"}}, ckpt)
+    spec = build_r18(ckpt, image_size=(64, 96))
+    scheme = json.loads(spec.metadata["sgde.prior_normalisation"])["scheme"]
+    assert scheme.startswith("log(clip(prior_m, 0.5, max_depth) / 10)")
+    assert json.loads(build_r18(image_size=(64, 96)).metadata["sgde.prior_normalisation"])["scheme"].startswith("clip(")
+    # the graph encodes as the metadata says: a 40 m prior enters as log 4
+    assert float(spec.module.net.encoding(torch.full((1, 1, 1, 1), 40.0))[0, 0]) == pytest.approx(math.log(4.0))
