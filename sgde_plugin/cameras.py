@@ -150,6 +150,11 @@ class CameraModel:
         """The same camera for the image resized to (width, height)."""
         raise NotImplementedError
 
+    def with_focal_scale(self, scale: float) -> CameraModel:
+        """The same camera with its focal length times `scale`: every pixel's offset from the principal point
+        grows by `scale`, the principal point and the distortion profile stay."""
+        raise NotImplementedError
+
     def __eq__(self, other: object) -> bool:
         return isinstance(other, CameraModel) and self.to_dict() == other.to_dict()
 
@@ -165,6 +170,14 @@ def _resize_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     K2[0, 2] = sx * (K[0, 2] + 0.5) - 0.5
     K2[1, 2] = sy * (K[1, 2] + 0.5) - 0.5
     K2[2] = [0.0, 0.0, 1.0]
+    return K2
+
+
+def _focal_scaled_K(K: np.ndarray, scale: float) -> np.ndarray:
+    """K with fx, fy and the skew times `scale` (principal point kept)."""
+    K2 = np.array(K, dtype=np.float64)
+    K2[0, :2] *= scale
+    K2[1, 1] *= scale
     return K2
 
 
@@ -248,6 +261,9 @@ class Pinhole(CameraModel):
     def resized(self, width: int, height: int) -> Pinhole:
         return Pinhole(width, height, _resize_K(self.K, width / self.width, height / self.height), self.dist)
 
+    def with_focal_scale(self, scale: float) -> Pinhole:
+        return Pinhole(self.width, self.height, _focal_scaled_K(self.K, scale), self.dist)
+
 
 @dataclass(frozen=True, eq=False)
 class KannalaBrandt(CameraModel):
@@ -301,6 +317,9 @@ class KannalaBrandt(CameraModel):
     def resized(self, width: int, height: int) -> KannalaBrandt:
         K = _resize_K(self.K, width / self.width, height / self.height)
         return KannalaBrandt(width, height, K, self.dist, self.fov_deg)
+
+    def with_focal_scale(self, scale: float) -> KannalaBrandt:
+        return KannalaBrandt(self.width, self.height, _focal_scaled_K(self.K, scale), self.dist, self.fov_deg)
 
 
 @dataclass(frozen=True, eq=False)
@@ -382,6 +401,13 @@ class Ocam(CameraModel):
             affine=np.asarray(self.affine),
             fov_deg=self.fov_deg,
         )
+
+    def with_focal_scale(self, scale: float) -> Ocam:
+        # sensor radii times s: inv_poly times s, poly(rho) -> s poly(rho / s) (the same ray)
+        powers = np.arange(len(self.poly))
+        return Ocam(self.width, self.height, poly=np.asarray(self.poly) * scale ** (1.0 - powers),
+                    inv_poly=np.asarray(self.inv_poly) * scale, center=np.asarray(self.center),
+                    affine=np.asarray(self.affine), fov_deg=self.fov_deg)
 
 
 MODELS: dict[str, type[CameraModel]] = {m.model: m for m in (Pinhole, KannalaBrandt, Ocam)}

@@ -30,6 +30,7 @@ from .nn import DepthNet
 from .nn.sequence import RigSequence, lidar_pattern, overlap_masks
 from .nn.train import (
     SELF_INITIAL_DEPTH_M,
+    SELF_PRIOR_ENCODING,
     SELF_PRIOR_LOSS,
     SELF_PRIOR_WEIGHT,
     SELF_SCHEDULE,
@@ -169,7 +170,7 @@ def _self_supervised_net() -> DepthNet:
     """The self-supervised recipe's prior net (input & L1, validity channel; depth 0.5-100 m starting at 10 m)."""
     init = DepthNet(use_prior=False, min_depth=0.5, max_depth=100.0)
     start_at_depth(init, SELF_INITIAL_DEPTH_M)
-    return DepthNet.with_prior_from(init, validity=True, prior_max_depth=80.0)
+    return DepthNet.with_prior_from(init, validity=True, prior_max_depth=80.0, prior_encoding=SELF_PRIOR_ENCODING)
 
 
 def _network_row(label: str, res: dict, seconds: float) -> dict:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .cameras import Camera
+from .cameras import Camera, CameraModel
 from .errors import InputError
 from .geometry import invert_transform
 from .io import atomic_write_text, image_size, is_plain_name, read_depth_png, read_image, read_mask
@@ -198,6 +198,12 @@ class Rig:
     def with_extrinsics(self, sensor_to_ego: Mapping[str, np.ndarray]) -> Rig:
         """The same rig with some cameras' sensor_to_ego replaced."""
         cams = tuple(c.with_pose(sensor_to_ego[c.name]) if c.name in sensor_to_ego else c for c in self.cameras)
+        return replace(self, cameras=cams)
+
+    def with_intrinsics(self, intrinsics: Mapping[str, CameraModel]) -> Rig:
+        """The same rig with some cameras' intrinsics replaced."""
+        cams = tuple(Camera(c.name, intrinsics[c.name], c.sensor_to_ego) if c.name in intrinsics else c
+                     for c in self.cameras)
         return replace(self, cameras=cams)
 
     def with_extra(self, **extra: object) -> Rig:

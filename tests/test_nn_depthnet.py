@@ -35,11 +35,12 @@ def test_cameras_fold_into_batch():
     assert torch.allclose(folded.reshape(6, 1, 32, 64), flat, atol=1e-6)
 
 
-@pytest.mark.parametrize("validity", [False, True])
-def test_zero_prior_equivalence(validity):
+@pytest.mark.parametrize("validity,form", [(False, "depth"), (True, "depth"), (True, "log")])
+def test_zero_prior_equivalence(validity, form):
     torch.manual_seed(0)
     base = DepthNet(use_prior=False).eval()
-    wide = DepthNet.with_prior_from(base, validity=validity).eval()
+    wide = DepthNet.with_prior_from(base, validity=validity, prior_encoding=form).eval()
+    assert wide.encoding.form == form
     assert wide.encoder.conv1.in_channels == 4 + int(validity)
     rgb = torch.rand(2, 3, 64, 96)
     with torch.no_grad():

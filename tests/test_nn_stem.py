@@ -1,6 +1,7 @@
 """Prior encoding and prior-channel stem (runtime ~2 s)."""
 
 import copy
+import math
 
 import pytest
 import torch
@@ -18,6 +19,25 @@ def test_prior_encoding_values():
     out2 = PriorEncoding(max_depth=80.0, with_validity=True)(prior)
     assert out2.shape == (1, 2, 2, 2)
     assert torch.equal(out2[:, 1], torch.tensor([[[0.0, 1.0], [1.0, 0.0]]]))
+
+
+def test_log_prior_encoding_values_and_round_trip():
+    prior = torch.tensor([[[[0.0, 10.0, 2.5], [40.0, 0.2, 100.0]]]])
+    enc = PriorEncoding(max_depth=80.0, with_validity=True, form="log")
+    out = enc(prior)
+    # log(d / 10 m): 0 for none, 0 for 10 m (told apart by validity), -log 4, log 4; 0.2 m -> floor 0.5 m,
+    # 100 m -> max 80 m
+    expected = torch.tensor([[0.0, 0.0, -math.log(4)], [math.log(4), math.log(0.05), math.log(8.0)]])
+    assert torch.allclose(out[0, 0], expected, atol=1e-6)
+    assert torch.equal(out[0, 1], torch.tensor([[0.0, 1.0, 1.0], [1.0, 1.0, 1.0]]))
+    back = enc.decode(out)
+    assert torch.allclose(back, torch.tensor([[[[0.0, 10.0, 2.5], [40.0, 0.5, 80.0]]]]), rtol=1e-6)
+    depth = PriorEncoding(max_depth=80.0)
+    assert torch.allclose(depth.decode(depth(prior)), torch.tensor([[[[0.0, 10.0, 2.5], [40.0, 0.2, 80.0]]]]))
+    with pytest.raises(ValueError, match="validity"):
+        PriorEncoding(form="log")
+    with pytest.raises(ValueError, match="form"):
+        PriorEncoding(with_validity=True, form="inverse")
 
 
 def test_widened_conv_init():

@@ -71,9 +71,10 @@ def test_schedule_warms_up_and_decays(seq):
 def test_arm_nets_share_initial_weights_and_are_independent():
     torch.manual_seed(0)
     init = DepthNet(use_prior=False, scales=(0,)).eval()
-    nets = arm_nets(init, SELF_SUPERVISED_ARMS, validity=True, prior_max_depth=80.0)
+    nets = arm_nets(init, SELF_SUPERVISED_ARMS, validity=True, prior_max_depth=80.0, prior_encoding="log")
     assert list(nets) == ["baseline", "+ input", "+ L1", "+ input & L1"]
     assert [n.use_prior for n in nets.values()] == [False, True, False, True]
+    assert [n.encoding.form for n in nets.values() if n.use_prior] == ["log", "log"]
     rgb = torch.rand(1, 3, 32, 64)
     with torch.no_grad():
         ref = init.predict(rgb)

@@ -52,11 +52,18 @@ def test_bench_real_on_scene_01_one_frame(tmp_path: Path) -> None:
 
     rig = load_rig(SAMPLE / "scene_01")
     write_rig_json(rig, tmp_path / "same.json")  # a second pose source equal to the data set's
+    # a third with CAMERA_01's focal length 2 % longer: the prior uses the file's intrinsics, the LiDAR truth
+    # stays the data set's (the same points compared at the same pixels)
+    cam = rig.camera("CAMERA_01")
+    write_rig_json(rig.with_intrinsics({cam.name: cam.intrinsics.with_focal_scale(1.02)}), tmp_path / "f.json")
     config = PriorConfig.from_settings(scale=0.25)
-    report = run_real(SAMPLE / "scene_01", [str(tmp_path / "same.json")], config, max_frames=1)
+    report = run_real(SAMPLE / "scene_01", [str(tmp_path / "same.json"), str(tmp_path / "f.json")], config,
+                      max_frames=1)
     assert report["frames"] == 1 and report["pairs"] == ["CAMERA_01|CAMERA_06", "CAMERA_05|CAMERA_01"]
     a, b = report["sources"]["dataset"], report["sources"][str(tmp_path / "same.json")]
     assert a["overall"] == b["overall"]
+    c = report["sources"][str(tmp_path / "f.json")]["overall"]
+    assert c["n_overlap"] == a["overall"]["n_overlap"] and c != a["overall"]
     overall = a["overall"]
     assert overall["n_overlap"] == sum(c["n_overlap"] for c in a["cameras"].values()) > 1000
     assert 0 < overall["n_prior"] and 0 < overall["coverage"] < 1

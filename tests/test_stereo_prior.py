@@ -180,8 +180,10 @@ def test_result_does_not_depend_on_the_thread_count():
         assert np.array_equal(one[name].confidence, two[name].confidence)
 
 
-def test_backprojection_skipping_empty_map_rows_loses_no_sample():
-    """Sparse confidence (small patches): `values` equals one plain remap of every covered pixel, bit for bit."""
+@pytest.mark.parametrize("dense", [False, True])
+def test_backprojection_skipping_empty_map_rows_loses_no_sample(dense):
+    """Sparse confidence (small patches: map rows skipped) and dense (every row: the one-pass path): `values`
+    equals one plain remap of every covered pixel, bit for bit."""
     rig, _, _ = pinhole_scene()
     back = PriorBuilder(rig, PriorConfig()).plans[0].left.back
     h, w = back.core
@@ -191,6 +193,9 @@ def test_backprojection_skipping_empty_map_rows_loses_no_sample():
     rng = np.random.default_rng(3)
     for y, x in zip(rng.integers(0, h - 1, 25), rng.integers(0, w - 1, 25)):
         conf[y : y + 3, x : x + 3] = rng.uniform(0.2, 1.0)  # 3x3 patches (2x2 at the border)
+    if dense:
+        conf = np.where(conf > 0, conf, 0.7).astype(np.float32)
+        conf[::7, ::5] = 0  # holes
     idx, z, c = back.values(disp, conf, 0.5, 80.0)
     stack = np.dstack([np.where(conf > 0, disp, -1.0e5), conf]).astype(np.float32)
     out = cv2.remap(stack, back.map1, back.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
@@ -198,6 +203,6 @@ def test_backprojection_skipping_empty_map_rows_loses_no_sample():
     ok = out[:, 0] > 0
     ref_z = back.kfb[ok] / out[ok, 0]
     keep = (ref_z >= 0.5) & (ref_z <= 80.0)
-    assert 50 < idx.size < 0.1 * back.count
+    assert (idx.size > 0.5 * back.count) if dense else (50 < idx.size < 0.1 * back.count)
     assert np.array_equal(idx, back.index[ok][keep])
     assert np.array_equal(z, ref_z[keep]) and np.array_equal(c, out[ok, 1][keep])

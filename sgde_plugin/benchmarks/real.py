@@ -1,14 +1,15 @@
 """`sgde bench real DIR [--rig RIG.json ...]`: the depth prior on real frames against projected LiDAR.
 
-For each pose source (the data set's extrinsics, then each `--rig` file, e.g. a calibration result)
-the priors of every frame are built with the default `PriorConfig` and compared with the LiDAR ground
-truth of `Rig.load_depth` (ego-motion compensated, nearest return per pixel): Abs Rel, Sq Rel, RMSE,
-delta < 1.25, the number of LiDAR points compared, and the coverage: the share of LiDAR points inside
-the true overlap (points that project into a neighbouring camera, at its own capture) that receive a
-prior. Per camera, per pair and overall; with times. The overlap is always taken from the data set's
-extrinsics, so every source is judged on the same LiDAR points. Each source also gets a breakdown of its
-errors (`real_breakdown`: by depth, image row and confidence band, large errors, the median disparity
-error per pair) and the sparsification curve of its confidence.
+For each pose source (the data set's extrinsics, then each `--rig` file, e.g. a calibration result, with
+its extrinsics and intrinsics: a calibration with `refine_focal` changes focal lengths) the priors of
+every frame are built with the default `PriorConfig` and compared with the LiDAR ground truth of
+`Rig.load_depth` (ego-motion compensated, nearest return per pixel): Abs Rel, Sq Rel, RMSE, delta < 1.25,
+the number of LiDAR points compared, and the coverage: the share of LiDAR points inside the true overlap
+(points that project into a neighbouring camera, at its own capture) that receive a prior. Per camera,
+per pair and overall; with times. The overlap and the LiDAR projection are always taken from the data
+set's extrinsics and intrinsics, so every source is judged on the same LiDAR points at the same pixels.
+Each source also gets a breakdown of its errors (`real_breakdown`: by depth, image row and confidence
+band, large errors, the median disparity error per pair) and the sparsification curve of its confidence.
 """
 
 from __future__ import annotations
@@ -32,12 +33,19 @@ COLUMNS = ("abs_rel", "sq_rel", "rmse", "a1", "n_prior", "coverage", "n_overlap"
 
 
 def _pose_source(rig: Rig, path: str) -> Rig:
-    """The scene's rig with the extrinsics of the sgde-rig/1 file at `path` (every camera must be there)."""
+    """The scene's rig with the extrinsics and intrinsics of the sgde-rig/1 file at `path` (every camera must
+    be there, at the scene's image size): a calibration may refine focal lengths too."""
     other = read_rig_json(path)
     missing = [c for c in rig.camera_names if c not in other.camera_names]
     if missing:
         raise InputError(path, "cameras", f"lacks {', '.join(missing)}")
-    return rig.with_extrinsics({c: other.camera(c).sensor_to_ego for c in rig.camera_names})
+    for c in rig.camera_names:
+        mine, theirs = rig.camera(c).intrinsics, other.camera(c).intrinsics
+        if (theirs.width, theirs.height) != (mine.width, mine.height):
+            raise InputError(path, f"cameras[{c}]", f"size {theirs.width}x{theirs.height}, the images are "
+                             f"{mine.width}x{mine.height}")
+    return rig.with_extrinsics({c: other.camera(c).sensor_to_ego for c in rig.camera_names}).with_intrinsics(
+        {c: other.camera(c).intrinsics for c in rig.camera_names})
 
 
 def _truth(rig: Rig) -> tuple[dict, dict, float]:

@@ -9,8 +9,9 @@ of the predicted direction onto the ray's tangent plane, 2 tan(angle / 2), which
 towards the antipode, so no point can settle behind its camera) times the camera's pixels per
 radian, divided by each observation's sigma, so pinholes and fisheyes share one model.
 
-Solver: Levenberg-Marquardt on the normal equations with the points eliminated per point (Schur
-complement, the standard bundle-adjustment reduction), analytic Jacobians, the soft-L1 loss by
+Solver (`schur.py`; this module holds the model and the passes): Levenberg-Marquardt on the normal
+equations with the points eliminated per point (Schur complement, the standard bundle-adjustment
+reduction), analytic Jacobians, the soft-L1 loss by
 iteratively reweighted least squares, and a safeguarded Gauss-Newton step per point after each pose
 step. SciPy's `least_squares(jac_sparsity=...)` with its LSMR trust-region solver was tried first: on
 5,000 points it used its 200 evaluations in 180 s without converging; this solver needs seconds.
@@ -41,11 +42,14 @@ Gauge and metric scale (the choice made here):
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..geometry import invert_transform, make_transform, rodrigues, rotation_vector, skew
+from .focal import FocalMap
+from .schur import covariance, lm_step
 
 _LOG = logging.getLogger(__name__)
 
@@ -67,6 +71,9 @@ class AdjustConfig:
     initial_damping: float = 1e-3
     point_iterations: int = 1
     consensus_deg: float = 3.0
+    refine_focal: bool = True
+    sigma_focal: float = 0.01
+    focal_min_sigmas: float = 10.0
 
 
 @dataclass
@@ -93,6 +100,7 @@ class _State:
     anchor: np.ndarray  # (K, 3) fixed anchor of each point (a camera centre that sees it, initial)
     m: np.ndarray  # (K, 3) unit direction from the anchor
     rho: np.ndarray  # (K,) inverse distance from the anchor (0 = at infinity, < 0 beyond it)
+    s: np.ndarray | None = None  # (M,) focal-length scale of each camera (None: not refined)
 
     @property
     def P(self) -> np.ndarray:
@@ -112,7 +120,7 @@ class _State:
     def copy(self) -> _State:
         """A deep copy."""
         return _State(self.R_t.copy(), self.c_t.copy(), self.R_m.copy(), self.p_m.copy(), self.G.copy(),
-                      self.anchor.copy(), self.m.copy(), self.rho.copy())
+                      self.anchor.copy(), self.m.copy(), self.rho.copy(), None if self.s is None else self.s.copy())
 
 
 @dataclass
@@ -129,6 +137,9 @@ class AdjustResult:
     final_rms_px: float
     state: _State | None = field(default=None, repr=False)
     rotation_cov: np.ndarray | None = field(default=None, repr=False)  # (M, M, 3, 3), see relative_rotation_sigma_deg
+    focal_scale: np.ndarray | None = None  # (M,) with `AdjustConfig.refine_focal`
+    focal_scale_sigma: np.ndarray | None = None  # (M,) 1-sigma of the free estimates (robust_adjust)
+    focal_scale_free: np.ndarray | None = None  # (M,) free estimates, before the significance test (robust_adjust)
 
 
 def triangulate_midpoint(
@@ -278,11 +289,13 @@ class _Problem:
     """Residuals, Jacobians and priors of one loop-constrained adjustment.
 
     Pose unknowns (left-multiplied rotation increments, additive translations): 6 per frame (frame 0
-    is fixed), 6 per non-reference camera, 3 for G; the reference camera maps to a discarded slot.
+    is fixed), 6 per non-reference camera, 3 for G; the reference camera maps to a discarded slot. With
+    `config.refine_focal` and `focal_maps`, one focal-length scale per camera follows (every camera's,
+    the reference's included; a camera whose map is None keeps 1 through its prior).
     """
 
     def __init__(self, sensor_to_ego, ego_to_world, obs, focal, reference, config: AdjustConfig,
-                 capture_mount: np.ndarray | None = None):
+                 capture_mount: np.ndarray | None = None, focal_maps: Sequence[FocalMap | None] | None = None):
         self.M, self.T = sensor_to_ego.shape[0], ego_to_world.shape[0]
         self.ref, self.cfg, self.obs = reference, config, obs
         mounts = sensor_to_ego.copy()
@@ -323,6 +336,13 @@ class _Problem:
         self.E = np.stack(tangent_basis(self.ray), axis=1)  # (N, 2, 3)
         self.pair_i, self.pair_j = _pair_indices(obs.point) if len(obs) else (np.zeros(0, int), np.zeros(0, int))
         n = self.n_full
+        self.maps = list(focal_maps) if config.refine_focal and focal_maps is not None else None
+        if self.maps is not None:
+            self.f_idx = n
+            self.n_full = n = n + self.M
+            self.solve_idx = np.concatenate([self.solve_idx, self.f_idx + np.arange(self.M)])
+            self.pose_idx = np.concatenate([self.pose_idx, (self.f_idx + obs.camera)[:, None]], axis=1)  # (N, 13)
+            self.cam_obs = [np.flatnonzero(obs.camera == m) for m in range(self.M)]
         self.flat_pp = (self.pose_idx[:, :, None] * n + self.pose_idx[:, None, :]).ravel()
         self.flat_ij = (self.pose_idx[self.pair_i][:, :, None] * n + self.pose_idx[self.pair_j][:, None, :]).ravel()
 
@@ -330,7 +350,22 @@ class _Problem:
         """Poses from the initial extrinsics and ego poses; points still to be triangulated."""
         z = np.zeros((n_points, 3))
         return _State(self.W_local[:, :3, :3].copy(), self.W_local[:, :3, 3].copy(), self.Q0[:, :3, :3].copy(),
-                      self.Q0[:, :3, 3].copy(), self.R_local.copy(), z, z + [0.0, 0.0, 1.0], np.ones(n_points))
+                      self.Q0[:, :3, 3].copy(), self.R_local.copy(), z, z + [0.0, 0.0, 1.0], np.ones(n_points),
+                      None if self.maps is None else np.ones(self.M))
+
+    def focal_scales(self, st: _State) -> np.ndarray:
+        """The state's focal scales (ones when it has none, e.g. a warm start from a run without them)."""
+        return np.ones(self.M) if st.s is None else st.s
+
+    def map_focal(self, q: np.ndarray, st: _State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Camera-frame directions (N, 3) -> the directions the rig's intrinsics see (focal_scale), d/dq, d/ds."""
+        out, dq, ds = q.copy(), np.broadcast_to(np.eye(3), (q.shape[0], 3, 3)).copy(), np.zeros_like(q)
+        s = self.focal_scales(st)
+        for m, fm in enumerate(self.maps):
+            idx = self.cam_obs[m]
+            if fm is not None and idx.size:
+                out[idx], dq[idx], ds[idx] = fm.apply(q[idx], float(s[m]))
+        return out, dq, ds
 
     def extrinsics(self, st: _State, S_ref: np.ndarray) -> np.ndarray:
         """sensor_to_ego (M, 4, 4) of a state, the reference camera at `S_ref`."""
@@ -353,6 +388,8 @@ class _Problem:
         v = (RtT @ h[:, :, None])[:, :, 0] - rho[:, None] * ((self.cap_RT @ self.cap_t[:, :, None])[:, :, 0] + pm)
         RmT = np.swapaxes(Rm, 1, 2)
         q = (RmT @ v[:, :, None])[:, :, 0]
+        if self.maps is not None:
+            q, dq_dq, dq_ds = self.map_focal(q, st)
         nq = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
         u = q / nq[:, None]
         # stereographic residual 2 f E u / (1 + ray . u): f * angle near the ray, no minimum at the antipode
@@ -364,13 +401,17 @@ class _Problem:
         # dr/du = (2 f / s) (E - E u ray^T / s); du/dq = (I - u u^T) / |q|
         dr_du = (2.0 * self.focal / s)[:, None, None] * (self.E - Eu[:, :, None] * (self.ray / s[:, None])[:, None, :])
         A = (dr_du - (dr_du @ u[:, :, None]) * u[:, None, :]) / nq[:, None, None]
+        extra = []
+        if self.maps is not None:
+            extra = [A @ dq_ds[:, :, None]]  # d r / d s of the observation's camera
+            A = A @ dq_dq
         A_RmT = A @ RmT
         A_RmT_RtT = A_RmT @ RtT
         J_pose = np.concatenate(
-            [A_RmT_RtT @ skew(h), -rho[:, None, None] * A_RmT_RtT, A_RmT @ skew(v), -rho[:, None, None] * A_RmT],
-            axis=2,
-        )  # (N, 2, 12)
-        J_pose[self.is_ref, :, 6:] = 0.0
+            [A_RmT_RtT @ skew(h), -rho[:, None, None] * A_RmT_RtT, A_RmT @ skew(v), -rho[:, None, None] * A_RmT]
+            + extra, axis=2,
+        )  # (N, 2, 12), (N, 2, 13) with the focal scale
+        J_pose[self.is_ref, :, 6:12] = 0.0
         e1, e2 = tangent_basis(st.m)
         B = np.stack([e1, e2], axis=2)[o.point]  # (N, 3, 2) tangent basis of m
         d_rho = (RtT @ (a - ct)[:, :, None])[:, :, 0] - (self.cap_RT @ self.cap_t[:, :, None])[:, :, 0] - pm
@@ -378,7 +419,7 @@ class _Problem:
         return r, J_pose, J_pt
 
     def prior_terms(self, st: _State) -> list[tuple[np.ndarray, list[tuple[int, np.ndarray]]]]:
-        """Prior residuals (3,) with their Jacobian blocks [(first pose column, 3x3)], small-angle form."""
+        """Prior residuals (k,) with their Jacobian blocks [(first pose column, k x width)], small-angle form."""
         cfg = self.cfg
         out: list[tuple[np.ndarray, list[tuple[int, np.ndarray]]]] = []
         eye = np.eye(3)
@@ -397,6 +438,9 @@ class _Problem:
             base = 6 * self.T + 6 * s_
             out.append((rotation_vector(st.R_m[m] @ self.Q0[m, :3, :3].T) * s_rr, [(base, s_rr * eye)]))
             out.append(((st.p_m[m] - self.Q0[m, :3, 3]) * s_rt, [(base + 3, s_rt * eye)]))
+        if self.maps is not None:
+            s_f = 1.0 / cfg.sigma_focal
+            out.append(((self.focal_scales(st) - 1.0) * s_f, [(self.f_idx, s_f * np.eye(self.M))]))
         return out
 
     def cost(self, st: _State) -> float:
@@ -405,85 +449,22 @@ class _Problem:
         rho, _ = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
         return float(np.sum(rho) + sum(float(x @ x) for x, _ in self.prior_terms(st)))
 
-    def step(self, st: _State, lam: float) -> tuple[_State, float]:
-        """One damped Gauss-Newton step (Schur complement on the points); returns the trial state."""
-        o, n = self.obs, self.n_full
-        K = st.P.shape[0]
-        S, rhs, Hpl, Hll_inv, gl = self.reduced_system(st, lam)
-        keep = self.solve_idx
-        dp = np.zeros(n)
-        dp[keep] = np.linalg.solve(S[np.ix_(keep, keep)], rhs[keep])
-        back = np.zeros((K, 3))
-        np.add.at(back, o.point, (np.swapaxes(Hpl, 1, 2) @ dp[self.pose_idx][:, :, None])[:, :, 0])
-        dl = -(Hll_inv @ (gl + back)[:, :, None])[:, :, 0]
-        trial = self.apply(st, dp, dl)
-        for _ in range(self.cfg.point_iterations):
-            self.refine_points(trial)
-        return trial, float(np.abs(dp[keep]).max(initial=0.0))
+    def focal_scale_sigma(self, cov: np.ndarray) -> np.ndarray | None:
+        """1-sigma (M,) of each camera's focal scale from `covariance`; None when they are not refined."""
+        if self.maps is None:
+            return None
+        d = np.diag(cov)[self.f_idx : self.f_idx + self.M]
+        return np.sqrt(np.maximum(d, 0.0))
 
-    def camera_rotation_covariance(self, st: _State) -> np.ndarray:
-        """Covariance (M, M, 3, 3) of the cameras' rotation increments (rad^2; zero for the reference camera)
-        at `st`, from the Gauss-Newton information with the points eliminated and the priors included."""
-        S, *_ = self.reduced_system(st, 1e-9)  # a trace of damping keeps points at infinity invertible
-        keep = self.solve_idx
-        cov = np.zeros((self.n_full, self.n_full))
-        cov[np.ix_(keep, keep)] = np.linalg.pinv(S[np.ix_(keep, keep)])
+    def camera_rotation_covariance(self, cov: np.ndarray) -> np.ndarray:
+        """The cameras' rotation blocks (M, M, 3, 3) of a covariance of the increments (`schur.covariance`):
+        rad^2, zero for the reference camera."""
         out = np.zeros((self.M, self.M, 3, 3))
         idx = {m: 6 * self.T + 6 * s_ for s_, m in enumerate(self.others)}
         for a, ia in idx.items():
             for b, ib in idx.items():
                 out[a, b] = cov[ia : ia + 3, ib : ib + 3]
         return out
-
-    def reduced_system(self, st: _State, lam: float):
-        """The damped normal equations of the poses with the points eliminated (Schur complement): S, the
-        right-hand side, and what the point back-substitution needs (Hpl, Hll^-1, gl)."""
-        o, n = self.obs, self.n_full
-        K = st.P.shape[0]
-        r, Jp, Jl = self.obs_terms(st, jacobians=True)
-        _, w = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
-        Jl_wT = np.swapaxes(Jl * w[:, None, None], 1, 2)
-        Jp_wT = np.swapaxes(Jp * w[:, None, None], 1, 2)
-        Hll = np.zeros((K, 3, 3))
-        np.add.at(Hll, o.point, Jl_wT @ Jl)
-        gl = np.zeros((K, 3))
-        np.add.at(gl, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
-        Hpp = np.bincount(self.flat_pp, weights=(Jp_wT @ Jp).ravel(), minlength=n * n).reshape(n, n).astype(float)
-        gp = np.bincount(self.pose_idx.ravel(), weights=(Jp_wT @ r[:, :, None]).ravel(), minlength=n).astype(float)
-        for x, blocks in self.prior_terms(st):
-            for ia, Ja in blocks:
-                gp[ia : ia + 3] += Ja.T @ x
-                for ib, Jb in blocks:
-                    Hpp[ia : ia + 3, ib : ib + 3] += Ja.T @ Jb
-        Hll_d = Hll + lam * np.einsum("kii->ki", Hll)[:, :, None] * np.eye(3)[None] + 1e-12 * np.eye(3)[None]
-        Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(n)
-        Hll_inv = np.linalg.inv(Hll_d)
-        Hpl = Jp_wT @ Jl  # (N, 12, 3)
-        # Schur complement: S = Hpp - sum over observation pairs (i, j) of one point of Hpl_i Hll^-1 Hpl_j^T
-        i, j = self.pair_i, self.pair_j
-        blocks = (Hpl[i] @ Hll_inv[o.point[i]]) @ np.swapaxes(Hpl[j], 1, 2)
-        S = Hpp_d - np.bincount(self.flat_ij, weights=blocks.ravel(), minlength=n * n).reshape(n, n)
-        v = (Hll_inv @ gl[:, :, None])[:, :, 0]
-        rhs = -gp + np.bincount(self.pose_idx.ravel(), weights=(Hpl @ v[o.point][:, :, None]).ravel(), minlength=n)
-        return S, rhs, Hpl, Hll_inv, gl
-
-    def refine_points(self, st: _State) -> None:
-        """One Gauss-Newton step per point with the poses held, kept only where it lowers that point's cost."""
-        o = self.obs
-        K = st.P.shape[0]
-        r, _, Jl = self.obs_terms(st, jacobians=True)
-        _, w = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
-        Jl_wT = np.swapaxes(Jl * w[:, None, None], 1, 2)
-        H = np.zeros((K, 3, 3))
-        np.add.at(H, o.point, Jl_wT @ Jl)
-        g = np.zeros((K, 3))
-        np.add.at(g, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
-        H += 1e-9 * np.einsum("kii->k", H)[:, None, None] * np.eye(3)[None] + 1e-12 * np.eye(3)[None]
-        before = self.point_costs(r, K)
-        old_m, old_rho = st.m, st.rho
-        self.move_points(st, -np.linalg.solve(H, g[:, :, None])[:, :, 0])
-        worse = self.point_costs(self.obs_terms(st, jacobians=False), K) > before
-        st.m[worse], st.rho[worse] = old_m[worse], old_rho[worse]
 
     @staticmethod
     def move_points(st: _State, dl: np.ndarray) -> None:
@@ -494,11 +475,6 @@ class _Problem:
         # no clamp at 0: the model uses the direction of rho * P, continuous through infinity (homogeneous
         # coordinates); a far point may end slightly "beyond infinity" within its noise
         st.rho = st.rho + dl[:, 2]
-
-    def point_costs(self, r: np.ndarray, n_points: int) -> np.ndarray:
-        """Robust cost of each point's observations."""
-        rho, _ = self.loss(np.sum(r * r, axis=1), self.cfg.f_scale)
-        return np.bincount(self.obs.point, weights=rho, minlength=n_points)
 
     def apply(self, st: _State, dp: np.ndarray, dl: np.ndarray) -> _State:
         """A new state moved by pose increments `dp` and point increments `dl`."""
@@ -512,6 +488,8 @@ class _Problem:
             new.R_m[m] = rodrigues(dp[b : b + 3]) @ st.R_m[m]
             new.p_m[m] = st.p_m[m] + dp[b + 3 : b + 6]
         new.G = rodrigues(dp[self.g_idx : self.g_idx + 3]) @ st.G
+        if self.maps is not None:
+            new.s = self.focal_scales(st) + dp[self.f_idx : self.f_idx + self.M]
         self.move_points(new, dl)
         return new
 
@@ -525,6 +503,7 @@ def adjust(
     config: AdjustConfig | None = None,
     start: AdjustResult | None = None,
     start_points: np.ndarray | None = None,
+    focal_maps: Sequence[FocalMap | None] | None = None,
 ) -> AdjustResult:
     """Loop-constrained bundle adjustment over one window; see the module docstring.
 
@@ -533,14 +512,17 @@ def adjust(
     obs: observations (camera, frame, point, unit ray, sigma); focal: (M,) pixels
     per radian; reference: index of the camera that carries the gauge. `start` (a previous result of
     the same problem) with `start_points` (which of its points `obs` numbers 0, 1, ...) warm-starts.
+    `focal_maps` (one per camera, `focal.focal_map`) with `config.refine_focal` adds a focal-length scale per
+    camera with a Gaussian prior of `config.sigma_focal` around 1 (`AdjustResult.focal_scale`).
     The iteration count includes rejected (re-damped) steps and is at most `config.max_iterations`.
     """
     cfg = config or AdjustConfig()
     sensor_to_ego = np.asarray(sensor_to_ego, dtype=np.float64)
     ego_to_world = np.asarray(ego_to_world, dtype=np.float64)
     if ego_to_world.ndim == 4 and (start is None or start.state is None) and cfg.max_iterations > 1:
-        return _adjust_captured(sensor_to_ego, ego_to_world, obs, focal, reference, cfg)
-    prob, st = _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points)
+        return _adjust_captured(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, focal_maps)
+    prob, st = _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points,
+                                  focal_maps)
     r0 = prob.obs_terms(st, jacobians=False) * prob.sigma[:, None]
     initial_rms = float(np.sqrt(np.mean(np.sum(r0 * r0, axis=1)))) if len(obs) else 0.0
     cost = prob.cost(st)
@@ -548,7 +530,7 @@ def adjust(
     converged, message, it = False, "iteration limit reached", 0
     while it < cfg.max_iterations:
         it += 1
-        trial, step_size = prob.step(st, lam)
+        trial, step_size = lm_step(prob, st, lam)
         new_cost = prob.cost(trial)
         if np.isfinite(new_cost) and new_cost <= cost:
             decrease = cost - new_cost
@@ -577,10 +559,12 @@ def adjust(
         initial_rms_px=initial_rms,
         final_rms_px=final_rms,
         state=st,
+        focal_scale=None if prob.maps is None else prob.focal_scales(st).copy(),
     )
 
 
-def _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points):
+def _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, start, start_points,
+                       focal_maps=None):
     """The problem and its starting state: a previous result's (warm start), else the initial poses with
     points triangulated from them. With per-camera capture, a warm start's G gives the reference mount's
     orientation for the capture offsets."""
@@ -589,7 +573,8 @@ def _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, 
     if ego_to_world.ndim == 4 and warm:
         mount = sensor_to_ego[reference].copy()
         mount[:3, :3] = ego_to_world[0, reference, :3, :3].T @ start.state.G.T  # ego-world -> camera at frame 0
-    prob = _Problem(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, capture_mount=mount)
+    prob = _Problem(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, capture_mount=mount,
+                    focal_maps=focal_maps)
     if warm:
         st = start.state.copy()
         if start_points is not None:
@@ -606,13 +591,15 @@ def _problem_and_start(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, 
 
 
 def _adjust_captured(sensor_to_ego: np.ndarray, ego_to_world: np.ndarray, obs: Observations, focal: np.ndarray,
-                     reference: int, cfg: AdjustConfig) -> AdjustResult:
+                     reference: int, cfg: AdjustConfig,
+                     focal_maps: Sequence[FocalMap | None] | None = None) -> AdjustResult:
     """Per-camera capture: the ego motion between captures is turned into the reference camera's frame with its
     mount; a first solve estimates the mount's orientation (through G), a second one uses it."""
     first = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
-                   replace(cfg, max_iterations=cfg.max_iterations // 2))
+                   replace(cfg, max_iterations=cfg.max_iterations // 2), focal_maps=focal_maps)
     again = adjust(sensor_to_ego, ego_to_world, obs, focal, reference,
-                   replace(cfg, max_iterations=cfg.max_iterations - first.iterations), start=first)
+                   replace(cfg, max_iterations=cfg.max_iterations - first.iterations), start=first,
+                   focal_maps=focal_maps)
     again.iterations += first.iterations
     again.initial_rms_px = first.initial_rms_px
     return again
@@ -660,6 +647,7 @@ def robust_adjust(
     reference: int = 0,
     config: AdjustConfig | None = None,
     schedule: RobustSchedule | None = None,
+    focal_maps: Sequence[FocalMap | None] | None = None,
 ) -> tuple[AdjustResult, np.ndarray]:
     """Adjustment in passes with outlier rejection between them; returns the result and the kept observations.
 
@@ -676,9 +664,37 @@ def robust_adjust(
     above `fine_reject_sigma` sigmas are dropped and pass 3, the final adjustment, uses the configured
     loss (soft-L1 by default, the paper's near-L1). Passes warm-start from the previous one and share
     one iteration budget.
+
+    Focal lengths (`config.refine_focal` with `focal_maps`): the passes run first with every camera's
+    focal-length scale free (prior `config.sigma_focal`), which estimates each with its 1-sigma. A scale
+    that differs from 1 by at least `config.focal_min_sigmas` sigmas is adopted. When all are, that is
+    the result; when none is, the passes are run again with the rig's intrinsics (the result is then the
+    fixed-intrinsics one, unchanged); otherwise again with the adopted cameras' scales free and the others
+    at 1. `focal_scale_free` / `focal_scale_sigma` report the free estimates either way; `iterations`
+    counts the passes of the result only (each run has the full iteration limit).
     """
     cfg = config or AdjustConfig()
     sch = schedule or RobustSchedule()
+    if not (cfg.refine_focal and focal_maps is not None and any(fm is not None for fm in focal_maps)):
+        return _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, None)[:2]
+    res, kept, _ = _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, focal_maps)
+    if res.focal_scale is None or res.focal_scale_sigma is None:
+        return res, kept
+    free, sigma = res.focal_scale.copy(), res.focal_scale_sigma.copy()
+    adopt = np.array([fm is not None for fm in focal_maps]) & (np.abs(free - 1.0) >= cfg.focal_min_sigmas * sigma)
+    _LOG.debug("focal scales: free %s, sigma %s, adopted %s", free, sigma, adopt)
+    if not adopt.all():
+        maps = [fm if adopt[m] else None for m, fm in enumerate(focal_maps)] if adopt.any() else None
+        res, kept, _ = _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, maps)
+        if maps is None:
+            res.focal_scale = np.ones_like(free)
+    res.focal_scale_free, res.focal_scale_sigma = free, sigma
+    return res, kept
+
+
+def _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, focal_maps):
+    """The passes of `robust_adjust` (focal scales free for the cameras whose map is given): the result, the
+    kept input observations and the final observations."""
     budget = cfg.max_iterations
     n_input = len(obs)
     # observations that disagree with their track's consensus point at the initial poses are mismatches
@@ -692,7 +708,8 @@ def robust_adjust(
         stage = replace(cfg, loss=sch.coarse_loss, f_scale=scale, pose_tol=max(cfg.pose_tol, sch.coarse_pose_tol),
                         ftol=max(cfg.ftol, sch.coarse_ftol),
                         max_iterations=max(1, min(sch.coarse_iterations_per_scale, budget - used)))
-        res = adjust(sensor_to_ego, ego_to_world, plain, focal, reference, config=stage, start=res)
+        res = adjust(sensor_to_ego, ego_to_world, plain, focal, reference, config=stage, start=res,
+                     focal_maps=focal_maps)
         used += res.iterations
         _LOG.debug("coarse pass: scale %s, %d iterations, %s", scale, res.iterations, res.message)
     cur_obs = obs
@@ -710,14 +727,18 @@ def robust_adjust(
             break
         cur_obs, kept_idx = sub, kept_idx[mask]
         res = adjust(sensor_to_ego, ego_to_world, cur_obs, focal, reference,
-                     config=replace(stage_cfg, max_iterations=budget - used), start=res, start_points=old_ids)
+                     config=replace(stage_cfg, max_iterations=budget - used), start=res, start_points=old_ids,
+                     focal_maps=focal_maps)
         used += res.iterations
         _LOG.debug("pass: limit %s, loss %s, %d iterations, %s, %d observations", limit, stage_cfg.loss,
                    res.iterations, res.message, len(cur_obs))
     res.iterations = used
     if len(cur_obs):
-        prob, st = _problem_and_start(sensor_to_ego, ego_to_world, cur_obs, focal, reference, cfg, res, None)
-        res.rotation_cov = prob.camera_rotation_covariance(st)
+        prob, st = _problem_and_start(sensor_to_ego, ego_to_world, cur_obs, focal, reference, cfg, res, None,
+                                      focal_maps)
+        cov = covariance(prob, st)
+        res.rotation_cov = prob.camera_rotation_covariance(cov)
+        res.focal_scale_sigma = prob.focal_scale_sigma(cov)
     kept = np.zeros(n_input, dtype=bool)
     kept[kept_idx] = True
-    return res, kept
+    return res, kept, cur_obs

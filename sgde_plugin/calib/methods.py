@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -42,6 +42,7 @@ from .ba import (
     select_observations,
 )
 from .correspondences import PairMatches
+from .focal import focal_map
 from .outliers import rotation_to_z
 from .overlap import pixels_per_radian
 
@@ -67,6 +68,9 @@ class MethodResult:
     rms_before_px: float = float("nan")
     rms_after_px: float = float("nan")
     pair_rotation_sigma_deg: dict[tuple[str, str], float] = field(default_factory=dict)
+    focal_scale: dict[str, float] = field(default_factory=dict)  # with AdjustConfig.refine_focal (glc only)
+    focal_scale_sigma: dict[str, float] = field(default_factory=dict)  # of the free estimates
+    focal_scale_free: dict[str, float] = field(default_factory=dict)  # before the significance test
 
 
 def spanning_tree(names: Sequence[str], pairs: Sequence[tuple[str, str]], root: str) -> list[tuple[str, str]]:
@@ -248,7 +252,8 @@ def _adjust_cameras(
     tracks = observations(matches, index)
     S0 = np.stack([c.sensor_to_ego for c in cameras])
     focal = np.array([pixels_per_radian(c.intrinsics) for c in cameras])
-    res, kept = robust_adjust(S0, ego_to_world, tracks.obs, focal, index[reference], config)
+    maps = [focal_map(c.intrinsics) for c in cameras] if config.refine_focal else None
+    res, kept = robust_adjust(S0, ego_to_world, tracks.obs, focal, index[reference], config, focal_maps=maps)
     rms, used = _pair_rms(res, kept, tracks, len(matches))
     return {n: res.sensor_to_ego[i] for i, n in enumerate(names)}, res, rms, used
 
@@ -264,8 +269,12 @@ def run_glc(
     index = {c.name: i for i, c in enumerate(cameras)}
     sigma = {} if res.rotation_cov is None else {
         (a, b): relative_rotation_sigma_deg(res.rotation_cov, index[a], index[b]) for a, b in pairs}
+    scales = {} if res.focal_scale is None else {c.name: float(res.focal_scale[i]) for i, c in enumerate(cameras)}
+    per_camera = {key: {} if v is None else {c.name: float(v[i]) for i, c in enumerate(cameras)}
+                  for key, v in (("sigma", res.focal_scale_sigma), ("free", res.focal_scale_free))}
     return MethodResult(ext, res.iterations, res.converged, res.message, pairs, dict(zip(pairs, rms)),
-                        dict(zip(pairs, used)), res.initial_rms_px, res.final_rms_px, sigma)
+                        dict(zip(pairs, used)), res.initial_rms_px, res.final_rms_px, sigma, scales,
+                        per_camera["sigma"], per_camera["free"])
 
 
 def relative_pose_from_rays(rays_a: np.ndarray, rays_b: np.ndarray, focal_px: float,
@@ -370,6 +379,7 @@ def run_method(
         return MethodResult({c.name: c.sensor_to_ego.copy() for c in cameras}, message="input extrinsics kept")
     if method == "glc":
         return run_glc(cameras, matches, ego_to_world, reference, cfg)
-    if method in ("wo-glc", "pairwise"):
-        return _chain(cameras, pairs, matches, ego_to_world, reference, cfg, same_time=method == "pairwise")
+    if method in ("wo-glc", "pairwise"):  # a pair alone cannot place a focal error: intrinsics stay fixed
+        return _chain(cameras, pairs, matches, ego_to_world, reference, replace(cfg, refine_focal=False),
+                      same_time=method == "pairwise")
     raise ValueError(f"unknown method {method!r} (expected one of {', '.join(METHODS)})")

@@ -6,6 +6,11 @@ input extrinsics), is calibrated, and is accepted or rejected by the paper's rul
 keeps the last accepted calibration. The returned rig carries the last accepted calibration and a
 `calibration` block whose `history` lists every accepted calibration with the timestamp from which
 it applies (`calibration_at` looks one up); history from an input rig's block is carried forward.
+With `AdjustConfig.refine_focal` (the default, `glc` only) a calibration also refines each camera's focal
+length where the images determine it (see `ba.robust_adjust`): the rig carries the refined intrinsics
+(fx, fy scaled; an ocam model's polynomials), each window's report lists every camera's estimate, its
+1-sigma and whether it was adopted (`focal`), and a history entry that changed any keeps the window's
+intrinsics (`intrinsics_at`); the next window starts from them.
 The block's top-level `accepted` is true when at least one window of this run was accepted; each
 entry of `windows` has its own verdict, the rule that fired and a one-line reason.
 """
@@ -19,10 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, CameraModel
 from ..errors import InputError
 from ..geometry import ORTHONORMAL_TOL, rotation_angle_deg, rotation_error
 from ..rig import Frame, Rig
+from ..rigfile import intrinsics_from_dict
 from ..stereo.rectify import torch_threads
 from .acceptance import (
     OBSERVED,
@@ -70,16 +76,29 @@ def _matrix_dict(ext: Mapping[str, np.ndarray]) -> dict[str, list]:
     return {k: np.asarray(v, dtype=np.float64).tolist() for k, v in ext.items()}
 
 
-def calibration_at(block: Mapping[str, Any], timestamp_us: int) -> dict[str, np.ndarray] | None:
-    """Extrinsics of the last accepted calibration whose window starts at or before `timestamp_us`."""
+def _entry_at(block: Mapping[str, Any], timestamp_us: int) -> Mapping[str, Any] | None:
+    """The last accepted calibration (history entry) whose window starts at or before `timestamp_us`."""
     best = None
     for entry in block.get("history", []):
         ts = entry.get("from_timestamp_us")
         if ts is not None and ts <= timestamp_us and (best is None or ts >= best["from_timestamp_us"]):
             best = entry
+    return best
+
+
+def calibration_at(block: Mapping[str, Any], timestamp_us: int) -> dict[str, np.ndarray] | None:
+    """Extrinsics of the last accepted calibration whose window starts at or before `timestamp_us`."""
+    best = _entry_at(block, timestamp_us)
     if best is None:
         return None
     return {k: np.asarray(v, dtype=np.float64) for k, v in best["sensor_to_ego"].items()}
+
+
+def intrinsics_at(block: Mapping[str, Any], timestamp_us: int) -> dict[str, CameraModel]:
+    """Intrinsics refined by that calibration (`AdjustConfig.refine_focal`); empty when it refined none."""
+    best = _entry_at(block, timestamp_us)
+    doc = {} if best is None else best.get("intrinsics") or {}
+    return {k: intrinsics_from_dict(v, f"calibration.history.intrinsics[{k}]") for k, v in doc.items()}
 
 
 def _windows(frames: tuple[Frame, ...], size: int) -> list[tuple[Frame, ...]]:
@@ -133,7 +152,8 @@ def calibrate(
     matcher: str = "sift",
     **options: Any,
 ) -> tuple[Rig, dict]:
-    """Calibrate the extrinsics of a rig over windows of its frames; returns the refined rig and its report.
+    """Calibrate the extrinsics (and focal lengths, AdjustConfig.refine_focal) of a rig over windows of its
+    frames; returns the refined rig and its report.
 
     images(frame_id, camera) -> RGB image (default: the rig folder's files). Options: window (T, default
     7; a shorter last window, or a rig with fewer frames, is calibrated with what it has), loftr_weights,
@@ -217,6 +237,7 @@ class WindowResult:
     verdict: Verdict
     after: dict[str, np.ndarray]
     report: dict[str, Any]
+    intrinsics: dict[str, CameraModel]  # after the window (refined focal lengths when accepted)
 
 
 def window_ego_poses(rig: Rig, frames: Sequence[Frame], cameras: Sequence[str]) -> np.ndarray:
@@ -232,7 +253,8 @@ def _match_window(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego:
                   start: Mapping[str, np.ndarray]) -> list[PairMatches]:
     """Correspondences of a window (from the match cache when the same window was matched from the same start)."""
     ids = [f.id for f in win]
-    key = (tuple(ids), repr(setup.match), tuple(start[n].tobytes() for n in sorted(start)))
+    key = (tuple(ids), repr(setup.match), tuple(start[n].tobytes() for n in sorted(start)),
+           tuple(repr(c.intrinsics.to_dict()) for c in cams))
     if setup.match_cache is not None and key in setup.match_cache:
         return setup.match_cache[key]
     matches = find_correspondences(cams, setup.pairs, ego,
@@ -273,17 +295,37 @@ def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], e
     return Judged(verdict, result, matches, used)
 
 
-def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...],
-                      start: dict[str, np.ndarray]) -> WindowResult:
-    """Calibrate and judge one window; its report entry."""
+def _focal_rows(start: Mapping[str, CameraModel], result: MethodResult | None) -> list[dict]:
+    """Per camera: the focal-length change (%) adopted, the free estimate (%) with its 1-sigma (%), and
+    whether it was significant enough to adopt (AdjustConfig.focal_min_sigmas)."""
+    if result is None or not result.focal_scale:
+        return []
+    rows = []
+    for name, s in result.focal_scale.items():
+        K = getattr(start[name], "K", None)
+        free = result.focal_scale_free.get(name, s)
+        rows.append({"camera": name, "change_pct": 100.0 * (s - 1.0), "estimate_pct": 100.0 * (free - 1.0),
+                     "sigma_pct": _num(100.0 * result.focal_scale_sigma.get(name, float("nan"))),
+                     "adopted": bool(s != 1.0),
+                     "fx_before": None if K is None else float(K[0, 0]),
+                     "fx_after": None if K is None else float(K[0, 0] * s)})
+    return rows
+
+
+def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], start: dict[str, np.ndarray],
+                      start_intr: dict[str, CameraModel]) -> WindowResult:
+    """Calibrate and judge one window (from the extrinsics and intrinsics in effect); its report entry."""
     involved = [c.name for c in rig.cameras if any(c.name in p for p in setup.pairs)]
-    cams = [Camera(c.name, c.intrinsics, start[c.name]) for c in rig.cameras if c.name in involved]
+    cams = [Camera(c.name, start_intr[c.name], start[c.name]) for c in rig.cameras if c.name in involved]
     ego = window_ego_poses(rig, win, involved)
     t_win = time.perf_counter()
     before = dict(setup.timings.seconds)
     j = _judge(rig, setup, cams, win, ego, start)
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
+    intr = dict(start_intr)
+    if j.verdict.accepted:
+        intr.update({n: start_intr[n].with_focal_scale(s) for n, s in res.focal_scale.items()})
     rot, trans = _changes(start, after, setup.pairs)
     report = {
         "index": k, "frames": [f.id for f in win], "timestamp_us": int(win[0].timestamp_us),
@@ -300,33 +342,41 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...],
         "rms_px_after": _num(res.rms_after_px),
         "max_rotation_change_deg": rot,
         "max_translation_change_m": trans,
+        "focal": _focal_rows(start_intr, j.result),
         "seconds": {s: round(setup.timings.seconds.get(s, 0.0) - before.get(s, 0.0), 3)
                     for s in setup.timings.seconds},
         "wall_seconds": round(time.perf_counter() - t_win, 3),
     }
-    return WindowResult(j.verdict, after, report)
+    return WindowResult(j.verdict, after, report, intr)
 
 
 def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
     old_block = rig.extra.get("calibration") if isinstance(rig.extra, Mapping) else None
     history: list[dict] = list(old_block.get("history", [])) if isinstance(old_block, Mapping) else []
     input_ext = {c.name: np.asarray(c.sensor_to_ego, dtype=np.float64) for c in rig.cameras}
-    current = dict(input_ext)
+    input_intr = {c.name: c.intrinsics for c in rig.cameras}
+    current, current_intr = dict(input_ext), dict(input_intr)
     reports = []
     for k, win in enumerate(_windows(setup.frames, setup.window)):
         ts = int(win[0].timestamp_us)
-        start = {**input_ext, **(calibration_at({"history": history}, ts) or dict(current))}
-        res = _calibrate_window(rig, setup, k, win, start)
+        in_effect = calibration_at({"history": history}, ts)
+        start = {**input_ext, **(in_effect or dict(current))}
+        start_intr = {**input_intr, **(intrinsics_at({"history": history}, ts) if in_effect else current_intr)}
+        res = _calibrate_window(rig, setup, k, win, start, start_intr)
         if res.verdict.accepted:
-            current = res.after
+            current, current_intr = res.after, res.intrinsics
             if setup.method != "none":
-                history.append({"from_timestamp_us": ts, "window": k, "method": setup.method,
-                                "sensor_to_ego": _matrix_dict(res.after)})
+                entry = {"from_timestamp_us": ts, "window": k, "method": setup.method,
+                         "sensor_to_ego": _matrix_dict(res.after)}
+                if res.report["focal"]:
+                    entry["intrinsics"] = {n: m.to_dict() for n, m in res.intrinsics.items()}
+                history.append(entry)
         reports.append(res.report)
     block = _block(setup, reports, history)
     final = calibration_at({"history": history}, int(1 << 62)) if setup.method != "none" else None
+    final_intr = intrinsics_at({"history": history}, int(1 << 62)) if final is not None else current_intr
     final = {**input_ext, **(final or current)}
-    return rig.with_extrinsics(final).with_extra(calibration=block), block
+    return rig.with_extrinsics(final).with_intrinsics(final_intr).with_extra(calibration=block), block
 
 
 def _block(setup: Setup, reports: list[dict], history: list[dict]) -> dict:

@@ -44,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--supervision", choices=("lidar", "self"), default="lidar",
                         help="train-effect: LiDAR-like supervision (default) or self-supervised view synthesis")
     parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
-                        help="`real` only: another pose source (sgde-rig/1 extrinsics, e.g. a calibration); repeatable")
+                        help="`real` only: another pose source (sgde-rig/1 extrinsics and intrinsics, e.g. a "
+                             "calibration); repeatable")
     parser.add_argument("--preset", default=None,
                         help="`real` only: prior settings preset (ddad, nuscenes, fisheye, synthetic; default: none)")
     parser.add_argument("--config", default=None, metavar="FILE",

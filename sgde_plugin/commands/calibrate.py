@@ -36,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="largest accepted relative translation change, m")
     parser.add_argument("--max-iterations", type=integer(1, 10**6), default=200,
                         help="iteration limit of the adjustment; a window that needs more is rejected (default 200)")
+    parser.add_argument("--refine-focal", action=argparse.BooleanOptionalAction, default=None,
+                        help="glc: estimate one focal-length scale per camera (prior 1 %%) and write the refined "
+                             "intrinsics (default: AdjustConfig.refine_focal)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
@@ -78,7 +81,7 @@ def summary_rows(block: dict) -> list[dict]:
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate, write the rig atomically, print the per-pair table and the verdict."""
-    from ..calib import AcceptanceRules, calibrate, default_beta
+    from ..calib import AcceptanceRules, AdjustConfig, calibrate, default_beta
     from ..io import atomic_write_text
     from ..readers.detect import load_rig
     from ..rig import write_rig_json
@@ -96,12 +99,18 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, "--max-iterations", "must be at least 1")
     rules = AcceptanceRules(min_correspondences=beta, max_translation_change_m=args.alpha,
                             max_iterations=args.max_iterations)
+    acfg = AdjustConfig() if args.refine_focal is None else AdjustConfig(refine_focal=args.refine_focal)
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
-                               loftr_weights=args.loftr_weights, rules=rules)
+                               loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg)
     write_rig_json(out_rig, args.out)
     if args.json:
         atomic_write_text(Path(args.json), json.dumps(block, indent=1) + "\n")
     print(format_table(summary_rows(block), digits=3))
+    for w in block["windows"]:
+        if w["accepted"] and w.get("focal"):
+            print(f"window {w['index']} focal length estimate (%, 1-sigma; * adopted): " + ", ".join(
+                f"{f['camera']} {f['estimate_pct']:+.3f} ({f['sigma_pct'] or float('nan'):.3f})"
+                f"{'*' if f['adopted'] else ''}" for f in w["focal"]))
     n_ok = sum(w["accepted"] for w in block["windows"])
     print(f"{args.method}: {n_ok}/{len(block['windows'])} windows accepted; wrote {args.out}")
     line = rejection_line(block)

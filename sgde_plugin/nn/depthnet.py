@@ -125,7 +125,8 @@ class DepthNet(nn.Module):
     ``("disp", s)`` (sigmoid output) and ``("depth", s)`` (metres in [min_depth, max_depth]) for
     each scale s (resolution H/2^s). ``use_prior=False`` is the plain 3-channel baseline.
     ``stem`` is the prior-channel stem's form: ``"full"`` (the paper), ``"factored"`` or ``"lowrank"``
-    (cheaper; see ``nn.stem``).
+    (cheaper; see ``nn.stem``). ``prior_encoding`` is the prior channel's form (`PriorEncoding`: ``"depth"``,
+    depth / prior_max_depth; ``"log"``, log(depth / 10 m), which needs ``validity``).
     """
 
     def __init__(
@@ -138,6 +139,7 @@ class DepthNet(nn.Module):
         scales: tuple[int, ...] = (0, 1, 2, 3),
         weights_path: str | Path | None = None,
         stem: str = "full",
+        prior_encoding: str = "depth",
     ) -> None:
         super().__init__()
         if not 0 < min_depth < max_depth:
@@ -147,7 +149,8 @@ class DepthNet(nn.Module):
         self.use_prior = use_prior
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
         self.scales = tuple(scales)
-        self.encoding = PriorEncoding(prior_max_depth or max_depth, with_validity=validity) if use_prior else None
+        self.encoding = PriorEncoding(prior_max_depth or max_depth, with_validity=validity,
+                                      form=prior_encoding) if use_prior else None
         self.encoder = ResNet18Encoder(extra_channels=int(use_prior), validity=validity, weights_path=weights_path,
                                        stem=stem)
         self.decoder = DepthDecoder(ENCODER_CHANNELS, self.scales)
@@ -176,7 +179,8 @@ class DepthNet(nn.Module):
 
     @classmethod
     def with_prior_from(cls, baseline: DepthNet, validity: bool = False,
-                        prior_max_depth: float | None = None, stem: str = "full") -> DepthNet:
+                        prior_max_depth: float | None = None, stem: str = "full",
+                        prior_encoding: str = "depth") -> DepthNet:
         """A prior-input copy of a (trained) 3-channel ``baseline``: same weights, widened first conv.
 
         With an all-zero prior it computes exactly what the baseline computes.
@@ -185,7 +189,8 @@ class DepthNet(nn.Module):
             raise ValueError("baseline already takes a prior")
         net = copy.deepcopy(baseline)
         net.use_prior = True
-        net.encoding = PriorEncoding(prior_max_depth or baseline.max_depth, with_validity=validity)
+        net.encoding = PriorEncoding(prior_max_depth or baseline.max_depth, with_validity=validity,
+                                     form=prior_encoding)
         net.encoder.conv1 = widen_first_conv(net.encoder.conv1, 1, validity, mode=stem)
         return net
 

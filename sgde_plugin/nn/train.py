@@ -46,6 +46,7 @@ SUPERVISED_ARMS = (
     Arm("+ input & L1", True, DEFAULT_WEIGHT),
 )
 SELF_PRIOR_LOSS, SELF_PRIOR_WEIGHT = "log_l1", 0.05  # the self-supervised arms' prior loss (see `prior_term`)
+SELF_PRIOR_ENCODING = "log"  # the self-supervised prior arms' input channel, log(depth / 10 m) (`PriorEncoding`)
 SELF_SUPERVISED_ARMS = (
     Arm("baseline", False, None),
     Arm("+ input", True, None),
@@ -55,13 +56,14 @@ SELF_SUPERVISED_ARMS = (
 
 
 def arm_nets(init: DepthNet, arms: tuple[Arm, ...], validity: bool = True, prior_max_depth: float | None = None,
-             stem: str = "full") -> dict[str, DepthNet]:
-    """One network per arm, all copies of the RGB-only ``init`` (prior arms: first conv widened)."""
+             stem: str = "full", prior_encoding: str = "depth") -> dict[str, DepthNet]:
+    """One network per arm, all copies of the RGB-only ``init`` (prior arms: first conv widened, the prior
+    channel encoded as ``prior_encoding``, see `PriorEncoding`)."""
     nets: dict[str, DepthNet] = {}
     for arm in arms:
         if arm.prior_input:
             nets[arm.name] = DepthNet.with_prior_from(init, validity=validity, prior_max_depth=prior_max_depth,
-                                                      stem=stem)
+                                                      stem=stem, prior_encoding=prior_encoding)
         else:
             nets[arm.name] = copy.deepcopy(init)
     return nets

@@ -60,7 +60,18 @@ class BackProjection:
     def _samples(
         self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 1.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """`sample` at the covered pixels that get a value: (positions in 0..N-1, disparity > 0, confidence).
+        """`sample` at the covered pixels that get a value: (positions in 0..N-1, disparity > 0, confidence)."""
+        rows, out = self._remapped(disparity, confidence, edge_px)
+        if out is None:
+            return np.zeros(0, np.intp), np.zeros(0, np.float32), np.zeros(0, np.float32)
+        got = np.flatnonzero(out[:, 0] > 0)
+        pos = got if rows is None else rows[got // _ROW] * _ROW + got % _ROW
+        return pos, out[got, 0], out[got, 1]
+
+    def _remapped(
+        self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 1.0
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(map rows remapped, None = all; their (rows x _ROW, 2) disparity and confidence), (None, None) if none.
 
         Map rows whose bilinear footprints hold no usable canvas pixel (summed-area test) would
         only sample the sentinel; where they are the majority they are skipped, the others remapped
@@ -83,24 +94,33 @@ class BackProjection:
         a, b, c, e = (table[self.corners[:, i]] for i in range(4))
         rows = np.flatnonzero(a - b - c + e > 0)
         if rows.size == 0:
-            return np.zeros(0, np.intp), np.zeros(0, np.float32), np.zeros(0, np.float32)
+            return None, None
         full = rows.size > 0.5 * self.corners.shape[0]  # gathering most rows costs more than it saves
         map1, map2 = (self.map1, self.map2) if full else (self.map1[rows], self.map2[rows])
         stack = cv2.merge([d, confidence.astype(np.float32)])
         out = cv2.remap(stack, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                         borderValue=(_SENTINEL, 0.0, 0.0, 0.0)).reshape(-1, 2)
-        got = np.flatnonzero(out[:, 0] > 0)
-        pos = got if full else rows[got // _ROW] * _ROW + got % _ROW
-        return pos, out[got, 0], out[got, 1]
+        return (None if full else rows), out
 
     def values(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flat pixel indices, depth in the camera's convention, confidence) of the pixels that got a value."""
-        pos, d, c = self._samples(disparity, confidence)
-        z = self.kfb[pos] / d
-        keep = (z >= min_depth) & (z <= max_depth)
-        return self.index[pos[keep]], z[keep], c[keep]
+        rows, out = self._remapped(disparity, confidence)
+        if out is None:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32)
+        if rows is not None:  # a few map rows: gather their pixels, then as `_samples`
+            got = np.flatnonzero(out[:, 0] > 0)
+            pos = rows[got // _ROW] * _ROW + got % _ROW
+            z = self.kfb[pos] / out[got, 0]
+            keep = (z >= min_depth) & (z <= max_depth)
+            return self.index[pos[keep]], z[keep], out[got[keep], 1]
+        d_all, c_all = cv2.split(out.reshape(-1, 1, 2))
+        d = d_all.reshape(-1)[: self.count]  # every map row: the first N samples are the covered pixels
+        with np.errstate(divide="ignore"):
+            z = self.kfb / d
+        sel = np.flatnonzero((d > 0) & (z >= min_depth) & (z <= max_depth))
+        return self.index[sel], z[sel], c_all.reshape(-1)[sel]
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float

@@ -8,7 +8,7 @@ per camera: prepare the images, match each pair (batched for a learned matcher),
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -19,20 +19,13 @@ import numpy as np
 from ..errors import InputError
 from ..rig import Frame, Rig
 from .backproject import fuse_into
+from .checks import MatchedPair, check_pair
 from .config import PRIOR_ALGO_VERSION, PriorConfig
-from .filters import (
-    depth_edge_factor,
-    discontinuity_factor,
-    grey_float,
-    lr_check,
-    normalize_image,
-    photometric_scores,
-    refine_disparity,
-    remove_islands,
-)
+from .filters import depth_edge_factor, normalize_image
 from .matchers import Matcher
 from .planning import PairPlan, plan_pairs, same_pose
 from .rectify import torch_threads
+from .schedule import run_pairs
 
 
 @dataclass
@@ -132,30 +125,10 @@ class PriorBuilder:
         disp_l, conf_l = dl[:, x0:], cl[:, x0:].copy()
         disp_r, conf_r = np.ascontiguousarray(dr_f[:, ::-1][:, :wc]), cr_f[:, ::-1][:, :wc].copy()
         # a match must start on a pixel its camera sees, away from the black border
-        r = cfg.sgbm.block_size // 2 + cfg.filters.border_px
-        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-        for conf, valid in ((conf_l, valid_l), (conf_r, valid_r)):
-            inner = cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-            conf[inner[:, x0:x1] == 0] = 0
-        lf, rf = grey_float(left), grey_float(right)
-        lc, rc = lf[:, x0:x1], rf[:, x0:x1]
-        if cfg.filters.refine_iterations > 0:
-            disp_l = refine_disparity(lc, rf, disp_l, conf_l > 0, -1, x0, cfg.filters.refine_iterations)
-            disp_r = refine_disparity(rc, lf, disp_r, conf_r > 0, +1, x0, cfg.filters.refine_iterations)
-        conf_l2 = lr_check(disp_l, conf_l, disp_r, conf_r, -1, cfg.filters.lr_max_diff)
-        conf_r2 = lr_check(disp_r, conf_r, disp_l, conf_l, +1, cfg.filters.lr_max_diff)
-        # photometric checks after the per-pixel shift catch consistent but wrong matches, e.g. of
-        # points whose true match has left the other image
-        t, m = cfg.filters.min_zncc, cfg.filters.max_abs_diff
-        for conf, a, b, disp, sign in ((conf_l2, lc, rf, disp_l, -1), (conf_r2, rc, lf, disp_r, +1)):
-            ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
-            conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / m, 0, 1)
-            if cfg.filters.min_texture > 0:  # rows without x-structure are ambiguous
-                conf *= np.clip(texture / cfg.filters.min_texture - 1, 0, 1)
-            conf *= disp / (disp + cfg.confidence.disparity_px)  # small disparities give uncertain depth
-            if cfg.confidence.edge_jump_px > 0:
-                conf *= discontinuity_factor(disp, conf > 0, cfg.confidence.edge_jump_px)
-            remove_islands(disp, conf, cfg.filters.min_region_px)  # isolated islands are mostly wrong matches
+        border = cfg.sgbm.block_size // 2 + cfg.filters.border_px
+        for conf, valid, side in ((conf_l, valid_l, plan.left), (conf_r, valid_r, plan.right)):
+            conf[~side.inner_for(valid, border, plan.pair.core_x)] = 0
+        disp_l, conf_l2, disp_r, conf_r2 = check_pair(MatchedPair(left, right, x0, disp_l, conf_l, disp_r, conf_r), cfg)
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
     def _pair_values(
@@ -201,13 +174,24 @@ class PriorBuilder:
         masks = self._masks(masks)
         grey = self._prepare(images)
         batched = self._match_batched(grey, masks)
-        with ThreadPoolExecutor(self.threads) as pool:
-            mapper = pool.map if self.threads > 1 and len(self.plans) > 1 else map
-            results = list(mapper(lambda p: self._pair_values(p, grey, masks, batched), self.plans))
+        needs = {c: [i for i, p in enumerate(self.plans) if c in (p.left.camera, p.right.camera)]
+                 for c in self.rig.camera_names}
+        fuse_s = [0.0]
+
+        def fuse(camera: str, pair_results: list[tuple[list[Any], dict[str, float]]]) -> PriorMap:
             t0 = time.perf_counter()
-            out = self._fuse([values for values, _ in results], masks, mapper)
+            values = [(index, z, c) for vals, _ in pair_results for cam, index, z, c in vals if cam == camera]
+            prior = self._fuse_camera(camera, values, masks.get(camera))
+            fuse_s[0] += time.perf_counter() - t0
+            return prior
+
+        with ThreadPoolExecutor(self.threads) as pool:
+            parallel = pool if self.threads > 1 and len(self.plans) > 1 else None
+            costs = [p.pair.size[0] * p.pair.size[1] * p.pair.max_disparity for p in self.plans]
+            results, out = run_pairs(self.plans, lambda p: self._pair_values(p, grey, masks, batched), needs, fuse,
+                                     parallel, costs)
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
-        timings["fuse"] = time.perf_counter() - t0
+        timings["fuse"] = fuse_s[0]
         timings["total"] = time.perf_counter() - t_start
         self.last_timings = timings
         self.last_warning = self._empty_frame_warning(out)
@@ -225,24 +209,11 @@ class PriorBuilder:
                                      f"{cam.width}x{cam.height}")
         return masks
 
-    def _fuse(
-        self, pair_values: list[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]],
-        masks: Mapping[str, np.ndarray | None], mapper: Callable = map,
-    ) -> dict[str, PriorMap]:
-        """`build`, last stage: every pair's values fused into each camera's map in pair order, then the
-        masks, the occlusion-edge factor and the confidence threshold applied; cameras are independent,
-        so `mapper` (e.g. a thread pool's map) may process them in parallel."""
-        per_camera: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {c: [] for c in self.rig.camera_names}
-        for values in pair_values:
-            for camera, index, z, c in values:
-                per_camera[camera].append((index, z, c))
-        names = list(per_camera)
-        return dict(zip(names, mapper(lambda n: self._fuse_camera(n, per_camera[n], masks.get(n)), names)))
-
     def _fuse_camera(
         self, name: str, values: list[tuple[np.ndarray, np.ndarray, np.ndarray]], mask: np.ndarray | None
     ) -> PriorMap:
-        """One camera's map from its (flat index, depth, confidence) values in pair order (see `_fuse`)."""
+        """One camera's map from its (flat index, depth, confidence) values in pair order, then the masks, the
+        occlusion-edge factor and the confidence threshold applied (cameras are independent)."""
         cam = self.rig.camera(name)
         prior = PriorMap.empty(cam.height, cam.width)
         for i, (index, z, c) in enumerate(values):

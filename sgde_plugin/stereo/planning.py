@@ -30,12 +30,17 @@ class PairSide:
     rect: WarpMaps  # (virtual or original) source -> rectified canvas
     valid: np.ndarray  # bool canvas: pixels the camera sees (through its virtual pinhole, if any)
     back: BackProjection  # original camera -> rectified canvas (backward map)
+    inner: np.ndarray  # bool core columns: `valid` eroded by the border a match keeps (`inner_core`)
 
     def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
         """Original image -> rectified canvas."""
         if self.pre is not None:
             image = self.pre.warp(image, interpolation)
         return self.rect.warp(image, interpolation)
+
+    def inner_for(self, valid: np.ndarray, border: int, core_x: tuple[int, int]) -> np.ndarray:
+        """`inner_core` of a canvas mask from `canvas_valid`: precomputed when it is this side's own."""
+        return self.inner if valid is self.valid else inner_core(valid, border, core_x)
 
     def canvas_valid(self, mask: np.ndarray | None) -> np.ndarray:
         """Bool canvas mask: the camera sees the pixel and the ego mask (if any) allows it."""
@@ -51,6 +56,13 @@ class PairPlan:
     pair: RectifiedPair
     left: PairSide
     right: PairSide
+
+
+def inner_core(valid: np.ndarray, border: int, core_x: tuple[int, int] | None = None) -> np.ndarray:
+    """Bool: pixels of a canvas mask whose (2 border + 1)^2 neighbourhood is all valid, in columns `core_x`."""
+    k = np.ones((2 * border + 1, 2 * border + 1), np.uint8)
+    inner = cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    return inner if core_x is None else inner[:, core_x[0] : core_x[1]]
 
 
 def same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: float = 1e-3) -> bool:
@@ -92,15 +104,17 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
             pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
             rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
         valid = [_side_valid(p, r) for p, r in zip(pres, rects)]
-        possible = _possible(pair, *valid, border)
+        inner = [inner_core(v, border) for v in valid]
+        possible = _possible(pair, *inner)
         sides = []
-        for orig, pre, warp, seen, rect, can in zip(
-            origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible
+        x0, x1 = pair.core_x
+        for orig, pre, warp, seen, rect, can, core in zip(
+            origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible, inner
         ):
             if orig.name not in rays:
                 rays[orig.name] = orig.intrinsics.ray_grid()
             back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
-            sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back))
+            sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1]))
         plans.append(PairPlan(pair, sides[0], sides[1]))
     return plans
 
@@ -113,17 +127,12 @@ def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
     return valid
 
 
-def _possible(
-    pair: RectifiedPair, valid_l: np.ndarray, valid_r: np.ndarray, border: int
-) -> tuple[np.ndarray, ...]:
+def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> tuple[np.ndarray, ...]:
     """Core pixels that can ever hold a left- / right-referenced disparity: seen (away from the
-    border: `border` px) by their own camera, with a seen pixel of the other within the search range."""
+    border: `inner_core`) by their own camera, with a seen pixel of the other within the search range."""
     D = pair.max_disparity
     x0, x1 = pair.core_x
-    r = border
-    k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    vl = cv2.erode(valid_l.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
-    vr = cv2.erode(valid_r.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    vl, vr = inner_l.view(np.uint8), inner_r.view(np.uint8)
     row = np.ones((1, D), np.uint8)
     # any right pixel in [x - D + 1, x] / any left pixel in [x, x + D - 1]
     right_reach = cv2.dilate(vr, row, anchor=(D - 1, 0), borderType=cv2.BORDER_CONSTANT, borderValue=0)
@@ -131,4 +140,4 @@ def _possible(
     return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
 
-__all__ = ["PairPlan", "PairSide", "plan_pairs", "same_pose"]
+__all__ = ["PairPlan", "PairSide", "inner_core", "plan_pairs", "same_pose"]

@@ -253,10 +253,11 @@ class WarpMaps:
         return cls(map1, map2, valid)
 
     def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-        """Warp one image (any channels, uint8 or float) into the target; 0 outside the source."""
-        out = cv2.remap(image, self.map1, self.map2, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        out[~self.valid] = 0
-        return out
+        """Warp one image (any channels, uint8 or float) into the target; 0 outside the source.
+
+        The maps send every pixel outside `valid` far outside the source (`camera_maps`), so the
+        constant border already makes it 0: no mask pass is needed."""
+        return cv2.remap(image, self.map1, self.map2, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 def default_rim_px(cam: Camera) -> int:

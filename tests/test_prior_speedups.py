@@ -1,0 +1,94 @@
+"""The prior's speed-ups change no value (the checks on the box of the matches up to float rounding in box
+filters): warps without a mask pass, and pairs scheduled costliest first with each camera fused early (the
+one-pass back-projection: test_stereo_prior.py).
+
+Runtime: about 5 s on 2 cores.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from test_stereo_prior import fisheye_scene, pinhole_scene
+
+from sgde_plugin.rig import Rig
+from sgde_plugin.stereo import checks
+from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
+from sgde_plugin.stereo.rectify import torch_threads
+from sgde_plugin.stereo.schedule import longest_first, run_pairs
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    with torch_threads(1):
+        yield
+
+
+def _whole_core(*confs, halo=checks.HALO):
+    """match_box that always answers the whole core (the computation before the speed-up)."""
+    if not any((c > 0).any() for c in confs):
+        return None
+    return slice(0, confs[0].shape[0]), slice(0, confs[0].shape[1])
+
+
+@pytest.mark.parametrize("scene", [pinhole_scene, fisheye_scene])
+def test_checks_on_the_box_of_the_matches_equal_the_whole_core(scene, monkeypatch):
+    rig, images, _ = scene()
+    rig = Rig(rig.cameras, (tuple(rig.camera_names),), ())
+    fast = PriorBuilder(rig, PriorConfig(), threads=1).build(images)
+    monkeypatch.setattr(checks, "match_box", _whole_core)
+    slow = PriorBuilder(rig, PriorConfig(), threads=1).build(images)
+    name = rig.camera_names[0]
+    assert (fast[name].depth > 0).mean() > 0.02
+    for cam in fast:  # box filters sum along a row from where it starts: float rounding, nothing more
+        assert np.array_equal(fast[cam].depth > 0, slow[cam].depth > 0)
+        np.testing.assert_allclose(fast[cam].depth, slow[cam].depth, rtol=1e-5, atol=0)
+        np.testing.assert_allclose(fast[cam].confidence, slow[cam].confidence, rtol=0, atol=1e-4)
+
+
+def test_match_box_holds_every_match_and_its_halo():
+    conf_l = np.zeros((50, 40), np.float32)
+    conf_r = np.zeros_like(conf_l)
+    conf_l[10, 12] = 0.5
+    conf_r[30, 38] = 0.2
+    rows, cols = checks.match_box(conf_l, conf_r, halo=3)
+    assert (rows.start, rows.stop, cols.start, cols.stop) == (7, 34, 9, 40)  # clipped at the right edge
+    assert checks.match_box(np.zeros((4, 4))) is None
+
+
+@pytest.mark.parametrize(("scene", "edge"), [(pinhole_scene, True), (fisheye_scene, False)])
+def test_warp_is_zero_outside_the_valid_canvas_without_a_mask_pass(scene, edge):
+    """`edge`: the canvas has pixels its camera does not see (the fisheyes see all of theirs)."""
+    rig, images, _ = scene()
+    plan = PriorBuilder(rig, PriorConfig()).plans[0]
+    rng = np.random.default_rng(0)
+    invalid = 0
+    for side in (plan.left, plan.right):
+        cam = rig.camera(side.camera)
+        image = rng.integers(1, 256, (cam.height, cam.width, 3), dtype=np.uint8)
+        warps = [side.rect] if side.pre is None else [side.pre, side.rect]
+        for maps in warps:
+            src = image if maps is warps[0] else warps[0].warp(image)
+            out = maps.warp(src)
+            invalid += int((~maps.valid).sum())
+            assert maps.valid.mean() > 0.2
+            assert not out[~maps.valid].any()
+            assert out[maps.valid].mean() > 20
+    assert invalid > 1000 or not edge
+
+
+def test_run_pairs_gives_the_sequential_results_in_order():
+    items = [3, 1, 4, 1, 5, 9]
+    needs = {"a": [0, 1], "b": [1, 2], "c": [5, 0], "lonely": []}
+
+    def consume(key, results):
+        return (key, tuple(results))
+
+    plain = run_pairs(items, lambda x: x * x, needs, consume)
+    assert plain == ([9, 1, 16, 1, 25, 81], {"a": ("a", (9, 1)), "b": ("b", (1, 16)), "c": ("c", (9, 81)),
+                                             "lonely": ("lonely", ())})
+    with ThreadPoolExecutor(2) as pool:
+        assert run_pairs(items, lambda x: x * x, needs, consume, pool, [float(i) for i in items]) == plain
+    assert longest_first([2.0, 5.0, 1.0, 5.0]) == [1, 3, 0, 2]
