@@ -21,6 +21,7 @@ class Plane:
     axis_u: np.ndarray
     axis_v: np.ndarray
     seed: int = 0
+    extent: tuple[float, float] | None = None  # half sizes along axis_u, axis_v around `point`; None = unbounded
 
 
 def wall(distance: float, azimuth_deg: float, height: float = 1.5, seed: int = 0) -> Plane:
@@ -58,6 +59,9 @@ def render(planes: list[Plane], camera: Camera, supersample: int = 2) -> tuple[n
         with np.errstate(divide="ignore", invalid="ignore"):
             t = ((pl.point - c) @ pl.normal) / den
         hit = valid & (t > 0) & np.isfinite(t) & (t < best_t)
+        if pl.extent is not None:  # a finite rectangle
+            q = c + d_ego * np.where(hit, t, 0.0)[..., None] - pl.point
+            hit &= (np.abs(q @ pl.axis_u) <= pl.extent[0]) & (np.abs(q @ pl.axis_v) <= pl.extent[1])
         p = c + d_ego[hit] * t[hit, None] - pl.point
         value[hit] = _texture(p @ pl.axis_u, p @ pl.axis_v, pl.seed)
         best_t[hit] = t[hit]

@@ -122,3 +122,35 @@ def test_guided_matching_raises_a_narrow_overlaps_observation_pairs_over_beta(na
     assert guided.inliers >= 2 * plain.inliers
     err = _true_epipolar_px(seq, ids, "CAM_00", "CAM_01", guided)
     assert np.median(err) < 0.5 and np.mean(err < 1.5) > 0.85
+
+
+def test_level_views_of_a_pair_share_one_orientation_and_antialias_blurs_the_coarser_view():
+    """Two pinholes 55 deg apart, one pitched 12 deg down and rolled 2 deg, the other pitched 2 deg up: their
+    own-axis overlap views differ by several degrees of roll, the level views by < 0.5 deg; a view that
+    samples its source 1.7x coarser, with `antialias`, low-passes a 1-px checkerboard instead of aliasing it."""
+    from sgde_plugin.calib.overlap import overlap_grid
+    from sgde_plugin.calib.views import overlap_view
+    from sgde_plugin.cameras import Camera, Pinhole
+    from sgde_plugin.geometry import camera_mount
+    from sgde_plugin.stereo.rectify import torch_threads
+
+    K = np.array([[120.0, 0, 119.5], [0, 120.0, 79.5], [0, 0, 1]])
+    a = Camera("A", Pinhole(240, 160, K), camera_mount(0.0, np.array([1.5, 0.0, 1.6]), np.radians(12), np.radians(2)))
+    K_b = np.array([[300.0, 0, 119.5], [0, 300.0, 79.5], [0, 0, 1]])  # 2.5x finer than A
+    b = Camera("B", Pinhole(240, 160, K_b), camera_mount(np.radians(-55), np.array([1.0, -0.8, 1.5]), np.radians(-2)))
+    rolls = {}
+    with torch_threads(1):
+        gab = overlap_grid(a, b, np.eye(4)[None], margin_px=0.0)
+        gba = overlap_grid(b, a, np.eye(4)[None], margin_px=0.0)
+        for level in (False, True):
+            va = overlap_view(a, gab, other=b, crop=True, level=level)
+            vb = overlap_view(b, gba, other=a, crop=True, level=level)
+            D = va.camera.sensor_to_ego[:3, :3].T @ vb.camera.sensor_to_ego[:3, :3]
+            rolls[level] = abs(np.degrees(np.arctan2(D[1, 0], D[0, 0])))
+    assert rolls[False] > 3.0 and rolls[True] < 0.5
+    assert vb.step > 1.5 and np.isclose(va.step, 1.0, rtol=0.05)  # B is 2.5x finer on axis, 1.7x at A's edge
+    checker = ((np.indices((160, 240)).sum(0) % 2) * 255).astype(np.uint8)
+    inside = vb.valid
+    aliased = vb.warp(checker)[inside].astype(float)
+    smooth = vb.warp(checker, antialias=True)[inside].astype(float)
+    assert aliased.std() > 30 and smooth.std() < 10 and abs(smooth.mean() - 127.5) < 10

@@ -46,6 +46,8 @@ class MatchConfig:
     pinhole_views: bool = True
     view_upsample: float = 1.0
     view_pair_scale: str = "min"
+    level_views: bool = False
+    antialias_views: bool = False
     cross_time: bool = True
     guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
     consensus_px: float = 1.5
@@ -340,7 +342,7 @@ def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str]
     for o in neighbours:
         view = (overlap_view(cam, grids[(name, o)], upsample=cfg.view_upsample) if fisheye else
                 overlap_view(cam, grids[(name, o)], other=cams[o], crop=True, upsample=cfg.view_upsample,
-                             pair_scale=cfg.view_pair_scale))
+                             pair_scale=cfg.view_pair_scale, level=cfg.level_views))
         if view is not None:
             views[o] = view
     return views
@@ -461,7 +463,7 @@ def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np
     mask = view.valid.copy()
     if static is not None:
         mask &= view.warp(static.astype(np.uint8), cv2.INTER_NEAREST) > 0
-    gray = to_gray(view.warp(image))
+    gray = to_gray(view.warp(image, antialias=cfg.antialias_views))
     kv = sift_features(gray, mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
     uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
     scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])

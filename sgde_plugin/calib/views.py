@@ -28,9 +28,14 @@ class VirtualView:
     map_y: np.ndarray
     valid: np.ndarray
     R: np.ndarray
+    step: float = 1.0  # source pixels per view pixel at the view's centre (> 1: the view samples coarser)
 
-    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-        """The source image resampled into the view (0 where the source has no data)."""
+    def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR, antialias: bool = False) -> np.ndarray:
+        """The source image resampled into the view (0 where the source has no data); with `antialias` a view
+        coarser than the source is sampled from the source low-passed to the view's pixel (Gaussian of
+        0.5 sqrt(step^2 - 1) source pixels), so that both views of a pair see the scene through one blur."""
+        if antialias and self.step > 1.05:
+            image = cv2.GaussianBlur(image, (0, 0), 0.5 * float(np.sqrt(self.step**2 - 1.0)))
         out = cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         out[~self.valid] = 0
         return out
@@ -44,7 +49,7 @@ class VirtualView:
 def overlap_view(
     cam: Camera, grid: OverlapGrid, hfov_deg: float = 110.0, vfov_deg: float = 100.0,
     other: Camera | None = None, crop: bool = False, pad_deg: float = 10.0, upsample: float = 1.0,
-    pair_scale: str = "min",
+    pair_scale: str = "min", level: bool = False,
 ) -> VirtualView | None:
     """A virtual pinhole of `cam` looking at the centre of its same-frame overlap in `grid`, or None.
 
@@ -54,7 +59,10 @@ def overlap_view(
     about 2:1); `upsample` multiplies that focal length (detection at a finer
     scale; measured: x2 changed nothing on the fisheye preset, the image's own pixels are the limit).
     With `crop` the view covers only the overlap's bounding box (at most hfov x vfov), grown by `pad_deg`
-    on each side for matches across frames.
+    on each side for matches across frames. With `level` the view's x axis is horizontal in the ego frame
+    (its y axis points down along gravity) instead of following the camera's own roll and pitch: the two
+    views of a pair then share one orientation up to the small difference of their axes (the random rigs'
+    cameras differ by up to 15 degrees of pitch, and their own-axis views by 4-11 degrees of roll).
     """
     T = grid.mask.shape[0]
     same = np.any(grid.mask[np.arange(T), np.arange(T)], axis=0)
@@ -67,7 +75,8 @@ def overlap_view(
         return None
     z = rays[ok].mean(axis=0)
     z /= np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
+    down = cam.sensor_to_ego[:3, :3].T @ [0.0, 0.0, -1.0] if level else np.array([0.0, 1.0, 0.0])
+    x = np.cross(down, z)
     if np.linalg.norm(x) < 1e-6:
         return None
     x /= np.linalg.norm(x)
@@ -95,4 +104,4 @@ def overlap_view(
     K = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     virtual = Camera(f"{cam.name}.overlap", Pinhole(w, h, K, None), pose)
     map_x, map_y, valid = camera_maps(cam, virtual, default_rim_px(cam))
-    return VirtualView(virtual, map_x, map_y, valid, R)
+    return VirtualView(virtual, map_x, map_y, valid, R, own / f)

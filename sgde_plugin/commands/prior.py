@@ -45,6 +45,8 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("max_abs_diff", "float", "photometric check: mean absolute difference below this, grey levels (8)"),
     ("min_texture", "float", "RMS x-gradient above this, 0 = off (SGBM 0.5, learned 0)"),
     ("min_region_px", "int", "smallest region of similar disparity kept, pixels (200)"),
+    ("ground_depth_ratio", "float", "drop matches farther than this x where their ray meets the ground "
+     "(ego z = 0), 0 = off (1.5)"),
     ("color", "bool", "match RGB instead of grey (SGBM no, learned yes)"),
     ("margin_px", "int", "rectified canvas margin, pixels (8)"),
     ("max_azimuth_deg", "float", "rectified canvas half-angle, degrees (60)"),

@@ -105,6 +105,8 @@ class FilterSettings:
     min_texture: float | None = None  # RMS x-gradient (grey levels / px) above this (full confidence at 2x);
     #                                   0 = off; SGBM 0.5, learned 0
     min_region_px: int = 200  # final speckle filter: smallest region of similar disparity kept
+    ground_depth_ratio: float = 1.5  # > 0: a match farther than this times the depth at which its ray meets the
+    #                                  ground (the plane ego z = 0) is dropped; 0 = off (ego origin not on the ground)
 
 
 @dataclass(frozen=True)
@@ -239,6 +241,8 @@ class PriorConfig:
             raise InputError(None, "scale", "must be in (0, 2]")
         if not 0 < g.min_depth < g.max_depth:
             raise InputError(None, "min_depth/max_depth", "need 0 < min_depth < max_depth")
+        if self.filters.ground_depth_ratio != 0 and not self.filters.ground_depth_ratio >= 1:
+            raise InputError(None, "ground_depth_ratio", "must be 0 (off) or at least 1")
         if self.confidence.edge_depth_ratio < 0:
             raise InputError(None, "edge_depth_ratio", "must not be negative")
         for name in ("block_size", "matcher_batch", "matcher_pad", "edge_window_px"):

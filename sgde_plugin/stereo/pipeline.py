@@ -126,8 +126,10 @@ class PriorBuilder:
         disp_r, conf_r = np.ascontiguousarray(dr_f[:, ::-1][:, :wc]), cr_f[:, ::-1][:, :wc].copy()
         # a match must start on a pixel its camera sees, away from the black border
         border = cfg.sgbm.block_size // 2 + cfg.filters.border_px
-        for conf, valid, side in ((conf_l, valid_l, plan.left), (conf_r, valid_r, plan.right)):
+        for conf, disp, valid, side in ((conf_l, disp_l, valid_l, plan.left), (conf_r, disp_r, valid_r, plan.right)):
             conf[~side.inner_for(valid, border, plan.pair.core_x)] = 0
+            if side.min_disparity is not None:  # beyond the ground: a near object matched far
+                conf[disp < side.min_disparity] = 0
         disp_l, conf_l2, disp_r, conf_r2 = check_pair(MatchedPair(left, right, x0, disp_l, conf_l, disp_r, conf_r), cfg)
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 

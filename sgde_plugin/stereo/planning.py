@@ -31,6 +31,7 @@ class PairSide:
     valid: np.ndarray  # bool canvas: pixels the camera sees (through its virtual pinhole, if any)
     back: BackProjection  # original camera -> rectified canvas (backward map)
     inner: np.ndarray  # bool core columns: `valid` eroded by the border a match keeps (`inner_core`)
+    min_disparity: np.ndarray | None = None  # float32 core columns: `ground_disparity`; None = no ground rule
 
     def warp(self, image: np.ndarray, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
         """Original image -> rectified canvas."""
@@ -63,6 +64,26 @@ def inner_core(valid: np.ndarray, border: int, core_x: tuple[int, int] | None = 
     k = np.ones((2 * border + 1, 2 * border + 1), np.uint8)
     inner = cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
     return inner if core_x is None else inner[:, core_x[0] : core_x[1]]
+
+
+def ground_disparity(pair: RectifiedPair, rect: Camera, ratio: float) -> np.ndarray | None:
+    """Float32 (H, core width): the smallest disparity a match of `rect`'s canvas pixel may have, from the ground.
+
+    A ray that points down meets the ground (the plane ego z = 0) at rectified depth h / (-dir_z), with h
+    the camera centre's height and dir the ray at rectified z = 1; nothing it sees lies farther. A match
+    farther than `ratio` times that (disparity below f B (-dir_z) / (ratio h)) is an object nearer than the
+    search range matched far (or the ground is not where the rig says). 0 for rays that do not point down.
+    None when the camera is not above the ground (the rule cannot hold).
+    """
+    h = float(rect.sensor_to_ego[2, 3])
+    if h <= 0:
+        return None
+    K, R = rect.intrinsics.K, rect.sensor_to_ego[:3, :3]
+    x0, x1 = pair.core_x
+    u = (np.arange(x0, x1, dtype=np.float64) - K[0, 2]) / K[0, 0]
+    v = (np.arange(rect.height, dtype=np.float64) - K[1, 2]) / K[1, 1]
+    dir_z = R[2, 0] * u[None, :] + R[2, 1] * v[:, None] + R[2, 2]  # ego z of the ray (rectified z = 1)
+    return np.maximum(K[0, 0] * pair.baseline_m * -dir_z / (ratio * h), 0.0).astype(np.float32)
 
 
 def same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: float = 1e-3) -> bool:
@@ -114,7 +135,10 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
             if orig.name not in rays:
                 rays[orig.name] = orig.intrinsics.ray_grid()
             back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
-            sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1]))
+            ratio = config.filters.ground_depth_ratio
+            floor = ground_disparity(pair, rect, ratio) if ratio > 0 else None
+            sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1],
+                                  min_disparity=floor))
         plans.append(PairPlan(pair, sides[0], sides[1]))
     return plans
 
@@ -140,4 +164,4 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
     return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
 
-__all__ = ["PairPlan", "PairSide", "inner_core", "plan_pairs", "same_pose"]
+__all__ = ["PairPlan", "PairSide", "ground_disparity", "inner_core", "plan_pairs", "same_pose"]
