@@ -1,10 +1,11 @@
-"""Scoped torch thread counts."""
+"""Scoped torch and OpenCV thread counts."""
 
 from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
 
+import cv2
 import torch
 
 
@@ -24,3 +25,21 @@ def torch_threads(n: int = 1) -> Iterator[None]:
     finally:
         if old != n:
             torch.set_num_threads(old)
+
+
+@contextlib.contextmanager
+def opencv_threads(n: int = 1) -> Iterator[None]:
+    """Run a block with OpenCV's thread count set to `n`, then restore the previous count.
+
+    For work that is already spread over threads of its own: each OpenCV call then runs in its calling
+    thread instead of handing stripes to OpenCV's pool (whose workers wait for the next call spinning,
+    and whose stripes meet at a barrier). Results do not depend on it.
+    """
+    old = cv2.getNumThreads()
+    if old != n:
+        cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        if old != n:
+            cv2.setNumThreads(old)
