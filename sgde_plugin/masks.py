@@ -24,7 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .cameras import Camera
 from .errors import InputError
+from .geometry import invert_transform, transform_points
 from .rig import Rig
 
 WORK_WIDTH = 384  # estimation runs at about this width; the mask is scaled back up
@@ -42,6 +44,98 @@ class MaskSettings:
     max_change_ratio: float = 0.8  # region's median change / the whole image's median change
     close_px: int = 5  # static edges are closed over gaps this wide (working pixels)
     grow_px: int = 2  # the final mask grows by this much (working pixels) over the body's edge
+    vote_margin: float = 3.0  # grey levels by which one motion model must explain a patch better to vote
+    max_ground_m: float = 40.0  # the ground model is used up to this distance from the camera
+    body_share: float = 0.6  # a region with motion votes is body only when this share of them say "did not move"
+    edge_gain: float = 2.0  # outline search: reward (in votes) for running on a static edge
+    step_cost: float = 0.5  # ... cost per row the outline moves between neighbouring columns
+    pixel_cost: float = 0.05  # ... cost per body pixel, so that no votes means no body
+
+
+def work_size(width: int, height: int) -> tuple[int, int]:
+    """(w, h) of the working images the estimator uses for a camera of this size."""
+    scale = min(1.0, WORK_WIDTH / width)
+    return max(8, round(width * scale)), max(8, round(height * scale))
+
+
+def ground_map(camera: Camera, first_cam_to_world: np.ndarray, other_cam_to_world: np.ndarray,
+               ground_to_world: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Float32 (h, w, 2) at work size: where each first-frame pixel's ground point (z = 0 of `ground_to_world`)
+    appears in the other frame; NaN above the horizon, beyond `max_range_m`, or outside the other image."""
+    small = camera.resized(*work_size(camera.width, camera.height))
+    rays, ok = small.intrinsics.ray_grid()
+    rays, ok = rays.numpy(), ok.numpy()
+    to_ground = invert_transform(ground_to_world) @ first_cam_to_world
+    d = rays @ to_ground[:3, :3].T
+    o = to_ground[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -o[2] / d[..., 2]
+    ok &= np.isfinite(s) & (s > 0) & (s < max_range_m)
+    points = o + d * np.where(ok, s, 0.0)[..., None]
+    to_other = invert_transform(other_cam_to_world) @ ground_to_world
+    uv, seen = small.intrinsics.project(transform_points(to_other, points.reshape(-1, 3)).reshape(points.shape))
+    w, h = small.width, small.height
+    ok &= seen & (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    return np.where(ok[..., None], uv, np.nan).astype(np.float32)
+
+
+def motion_votes(greys: Sequence[np.ndarray], maps: Sequence[np.ndarray], margin: float,
+                 min_gradient: float, still_ratio: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Bool (still, ground) over the first frame's textured 7x7 patches: "still" when the later frames show
+    the patch unmoved (mean absolute difference under `still_ratio` of its contrast, and the ground motion
+    worse by `margin` grey levels), "ground" when they show it moved as the ground plane would move it."""
+    g0 = greys[0]
+    box = (7, 7)
+    e_still = np.zeros_like(g0)
+    e_ground = np.zeros_like(g0)
+    seen = np.zeros_like(g0)
+    for g, m in zip(greys[1:], maps):
+        valid = cv2.erode(np.isfinite(m[..., 0]).astype(np.uint8), np.ones(box, np.uint8)) > 0
+        mx = np.where(np.isfinite(m[..., 0]), m[..., 0], -1).astype(np.float32)
+        my = np.where(np.isfinite(m[..., 1]), m[..., 1], -1).astype(np.float32)
+        warped = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        e_still += np.where(valid, cv2.boxFilter(np.abs(g0 - g), -1, box), 0)
+        e_ground += np.where(valid, cv2.boxFilter(np.abs(g0 - warped), -1, box), 0)
+        seen += valid
+    n = np.maximum(seen, 1)
+    e_still /= n
+    e_ground /= n
+    contrast = cv2.boxFilter(np.abs(g0 - cv2.boxFilter(g0, -1, box)), -1, box)
+    vote = (seen > 0) & (contrast > min_gradient)
+    still = vote & (e_still < still_ratio * contrast) & (e_ground > e_still + margin)
+    return still, vote & (e_still > e_ground + margin)
+
+
+def body_below_outline(still: np.ndarray, ground: np.ndarray, edges: np.ndarray, edge_gain: float,
+                       step_cost: float, pixel_cost: float) -> np.ndarray:
+    """Bool body mask hanging from the bottom edge below one outline row per column (the image height for no body).
+
+    The outline maximises, over all columns, the "still" votes minus twice the "ground" votes below it, plus
+    `edge_gain` where it runs on a static edge, minus `pixel_cost` per body pixel (no votes, no body) and
+    `step_cost` per row it moves between neighbouring columns (dynamic programming over the columns).
+    """
+    h, w = still.shape
+    score = still.astype(np.float32) - 2 * ground.astype(np.float32)
+    gain = np.zeros((h + 1, w), np.float32)
+    gain[:h] = np.cumsum(score[::-1], axis=0)[::-1] - pixel_cost * (h - np.arange(h))[:, None]
+    gain[:h] += edge_gain * edges
+    total = gain[:, 0].copy()
+    back = np.zeros((h + 1, w), np.int32)
+    for x in range(1, w):
+        best, arg = total.copy(), np.arange(h + 1)
+        for y in range(1, h + 1):  # L1 distance transform: cheapest way to arrive at row y from any row
+            if best[y - 1] - step_cost > best[y]:
+                best[y], arg[y] = best[y - 1] - step_cost, arg[y - 1]
+        for y in range(h - 1, -1, -1):
+            if best[y + 1] - step_cost > best[y]:
+                best[y], arg[y] = best[y + 1] - step_cost, arg[y + 1]
+        back[:, x] = arg
+        total = best + gain[:, x]
+    top = np.empty(w, np.int64)
+    top[-1] = int(total.argmax())
+    for x in range(w - 1, 0, -1):
+        top[x - 1] = back[top[x], x]
+    return np.arange(h)[:, None] >= top[None, :]
 
 
 def _grey_small(image: np.ndarray, width: int) -> np.ndarray:
@@ -80,27 +174,12 @@ def temporal_change(greys: Sequence[np.ndarray]) -> np.ndarray:
     return np.median(np.stack(diffs), axis=0)
 
 
-def estimate_static_mask(images: Sequence[np.ndarray], settings: MaskSettings | None = None) -> np.ndarray:
-    """Bool (H, W) of the first image's size: True = scene (use), False = static body (ignore).
-
-    `images`: two or more frames of one camera (uint8 RGB or grey), taken while the car moves.
-    """
-    s = settings or MaskSettings()
-    if len(images) < 2:
-        raise ValueError("a static mask needs at least two frames")
-    h, w = images[0].shape[:2]
-    if any(im.shape[:2] != (h, w) for im in images):
-        raise ValueError("all frames of a camera must have the same size")
-    greys = [_grey_small(im, WORK_WIDTH) for im in images]
-    sh, sw = greys[0].shape
-    edges = static_structure(greys, s.min_cos, s.min_gradient)
-    change = temporal_change(greys)
-    kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * s.close_px + 1, 2 * s.close_px + 1))
-    walls = cv2.morphologyEx(edges.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
+def _region_candidates(edges: np.ndarray, walls: np.ndarray, s: MaskSettings) -> list[np.ndarray]:
+    """Regions the closed static structure cuts out that could be the body (border, lower half, size, outline)."""
+    sh, sw = walls.shape
     n, labels, stats, centroids = cv2.connectedComponentsWithStats((~walls).astype(np.uint8), connectivity=4)
     border = np.zeros((sh, sw), bool)
     border[0, :] = border[-1, :] = border[:, 0] = border[:, -1] = True
-    body = np.zeros((sh, sw), bool)
     ring = np.ones((5, 5), np.uint8)
     candidates = []
     for i in range(1, n):
@@ -112,13 +191,50 @@ def estimate_static_mask(images: Sequence[np.ndarray], settings: MaskSettings | 
         outline = (cv2.dilate(region.astype(np.uint8), ring) > 0) & ~region & ~border
         if not outline.any():  # the region is the whole image: nothing is static
             continue
-        on_edges = float((edges | walls)[outline].mean())
-        if on_edges >= s.min_outline:
+        if float((edges | walls)[outline].mean()) >= s.min_outline:
             candidates.append(region)
+    return candidates
+
+
+def _is_body(region: np.ndarray, change: np.ndarray, scene_change: float, s: MaskSettings,
+             votes: tuple[np.ndarray, np.ndarray] | None) -> bool:
+    """A candidate region is body when it changed little, unless its motion votes say it moved as the road."""
+    if votes is not None:
+        still, ground = int((votes[0] & region).sum()), int((votes[1] & region).sum())
+        if still + ground >= 0.01 * region.sum() and ground >= s.body_share * (still + ground):
+            return False
+    return float(np.median(change[region])) <= s.max_change_ratio * max(scene_change, 1e-3)
+
+
+def estimate_static_mask(images: Sequence[np.ndarray], settings: MaskSettings | None = None,
+                         ground_maps: Sequence[np.ndarray] | None = None) -> np.ndarray:
+    """Bool (H, W) of the first image's size: True = scene (use), False = static body (ignore).
+
+    `images`: two or more frames of one camera (uint8 RGB or grey), taken while the car moves.
+    `ground_maps`: optional, one `ground_map` per later frame. With them textured patches vote between
+    "did not move" and "moved as the road would": the votes decide the regions, and an outline found by
+    `body_below_outline` adds the body parts no closed static structure cuts out.
+    """
+    s = settings or MaskSettings()
+    if len(images) < 2:
+        raise ValueError("a static mask needs at least two frames")
+    h, w = images[0].shape[:2]
+    if any(im.shape[:2] != (h, w) for im in images):
+        raise ValueError("all frames of a camera must have the same size")
+    greys = [_grey_small(im, WORK_WIDTH) for im in images]
+    edges = static_structure(greys, s.min_cos, s.min_gradient)
+    change = temporal_change(greys)
+    kc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * s.close_px + 1, 2 * s.close_px + 1))
+    walls = cv2.morphologyEx(edges.astype(np.uint8), cv2.MORPH_CLOSE, kc) > 0
+    votes = None if ground_maps is None else motion_votes(greys, ground_maps, s.vote_margin, s.min_gradient)
     scene_change = float(np.median(change[~walls])) if (~walls).any() else 0.0
-    for region in candidates:
-        if float(np.median(change[region])) <= s.max_change_ratio * max(scene_change, 1e-3):
+    body = np.zeros(walls.shape, bool)
+    for region in _region_candidates(edges, walls, s):
+        if _is_body(region, change, scene_change, s, votes):
             body |= region
+    if votes is not None:
+        near_edge = cv2.dilate(edges.astype(np.uint8), np.ones((3, 1), np.uint8)) > 0
+        body |= body_below_outline(*votes, near_edge, s.edge_gain, s.step_cost, s.pixel_cost)
     if body.any():  # the outline itself (the static structure along it) belongs to the body
         reach = s.close_px + 2
         kr = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1, 2 * reach + 1))
@@ -127,6 +243,19 @@ def estimate_static_mask(images: Sequence[np.ndarray], settings: MaskSettings | 
         body = cv2.dilate(body.astype(np.uint8), kg) > 0
     full = cv2.resize(body.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
     return ~full
+
+
+def rig_ground_maps(rig: Rig, camera: str, frame_ids: Sequence[str], max_range_m: float,
+                    min_motion_m: float = 0.3) -> list[np.ndarray] | None:
+    """`ground_map`s from the first listed frame to each later one for one camera of the rig, from its capture
+    poses; None when the car moved less than `min_motion_m` over the frames (then the road stands still too)."""
+    cam = rig.camera(camera)
+    frames = {f.id: f for f in rig.frames}
+    poses = [frames[i].capture_ego_to_world(camera) for i in frame_ids]
+    if max(float(np.linalg.norm(p[:3, 3] - poses[0][:3, 3])) for p in poses) < min_motion_m:
+        return None
+    first = poses[0] @ cam.sensor_to_ego
+    return [ground_map(cam, first, p @ cam.sensor_to_ego, poses[0], max_range_m) for p in poses[1:]]
 
 
 def spread_frames(n_frames: int, count: int) -> list[int]:
