@@ -13,6 +13,7 @@ from sgde_plugin.nn import DepthNet
 from sgde_plugin.nn.train import (
     SELF_SUPERVISED_ARMS,
     SUPERVISED_ARMS,
+    PriorWeight,
     Schedule,
     arm_nets,
     evaluate,
@@ -66,6 +67,26 @@ def test_schedule_warms_up_and_decays(seq):
     train_arm(net, seq, [0], steps=1, seed=0, prior_weight=None, schedule=Schedule(lr=1e-3, warmup=10, clip=1.0))
     moved = max(float((p.detach() - b).abs().max()) for p, b in zip(net.parameters(), before, strict=True))
     assert moved == pytest.approx(1e-3 * 0.1 * 0.2, rel=1e-2)
+
+
+def test_prior_weight_warm_up_against_hand_values(seq):
+    w = PriorWeight(0.05, start=1.0, steps=100)
+    # linear from 1.0 at step 0 to 0.05 at step 100, then constant
+    assert [w.at(i) for i in (0, 50, 99, 100, 299)] == pytest.approx([1.0, 0.525, 0.0595, 0.05, 0.05])
+    assert PriorWeight(0.2).at(0) == 0.2
+    rgb = frame_tensors(seq, [0])[0]
+
+    def one_step(weight):  # one training step of the same net; returns its prediction afterwards
+        torch.manual_seed(0)
+        net = DepthNet(use_prior=True, validity=True, min_depth=0.5, max_depth=100.0, scales=(0,))
+        train_arm(net, seq, [0], steps=1, seed=0, prior_weight=weight, lr=1e-3)
+        with torch.no_grad():
+            return net.predict(rgb, *frame_tensors(seq, [0])[2:])
+
+    # the first step uses the start weight: 1.0 -> 0 behaves as a constant 1.0 and 0 -> 1.0 as no prior loss
+    assert torch.equal(one_step(PriorWeight(0.0, start=1.0, steps=10)), one_step(1.0))
+    assert torch.equal(one_step(PriorWeight(1.0, start=0.0, steps=10)), one_step(None))
+    assert not torch.equal(one_step(1.0), one_step(None))
 
 
 def test_arm_nets_share_initial_weights_and_are_independent():

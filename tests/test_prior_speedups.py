@@ -92,3 +92,62 @@ def test_run_pairs_gives_the_sequential_results_in_order():
     with ThreadPoolExecutor(2) as pool:
         assert run_pairs(items, lambda x: x * x, needs, consume, pool, [float(i) for i in items]) == plain
     assert longest_first([2.0, 5.0, 1.0, 5.0]) == [1, 3, 0, 2]
+
+
+def test_parallel_build_runs_opencv_single_threaded_in_each_pair_thread_and_restores_it(monkeypatch):
+    """With two pair threads every OpenCV call runs in its caller (no nested stripes, no spinning pool); the
+    process-wide count is back afterwards, and the priors equal a one-thread build's bit for bit."""
+    import cv2
+
+    from sgde_plugin.threads import opencv_threads
+
+    rig, images, _ = fisheye_scene()
+    rig = Rig(rig.cameras, (("F", "R"), ("R", "F")), ())
+    one = PriorBuilder(rig, PriorConfig(), threads=1).build(images)
+    with opencv_threads(2):
+        builder = PriorBuilder(rig, PriorConfig(), threads=2)
+        seen = []
+        match = type(builder.matcher).match
+        monkeypatch.setattr(type(builder.matcher), "match",
+                            lambda *a: (seen.append(cv2.getNumThreads()), match(*a))[1])
+        two = builder.build(images)
+        assert cv2.getNumThreads() == 2
+    assert seen == [1, 1, 1, 1]  # two pairs x two references
+    for name in one:
+        assert np.array_equal(one[name].depth, two[name].depth)
+        assert np.array_equal(one[name].confidence, two[name].confidence)
+    with opencv_threads(3):
+        assert cv2.getNumThreads() == 3
+        with pytest.raises(RuntimeError), opencv_threads(1):
+            raise RuntimeError
+        assert cv2.getNumThreads() == 3
+
+
+def test_backprojection_float_maps_sit_on_the_fixed_point_grid():
+    """The backward maps are float (cv2.remap of float data runs about twice as fast with them) but hold the
+    1/32 px positions of OpenCV's fixed-point maps: a fixed-point remap gives the same samples up to float
+    rounding of the interpolation, and the same pixels get a value."""
+    import cv2
+
+    rig, _, _ = pinhole_scene()
+    back = PriorBuilder(rig, PriorConfig()).plans[0].left.back
+    assert back.map_x.dtype == np.float32 and back.map_x.shape == back.map_y.shape
+    for m in (back.map_x, back.map_y):
+        assert np.array_equal(m * 32, np.rint(m * 32))
+    h, w = back.core
+    yy, xx = np.mgrid[0:h, 0:w]
+    disp = (20 + 0.05 * xx + 0.03 * yy).astype(np.float32)
+    conf = np.full((h, w), 0.8, np.float32)
+    conf[::9, ::4] = 0
+    idx, z, c = back.values(disp, conf, 0.5, 80.0)
+    map1, map2 = cv2.convertMaps(back.map_x, back.map_y, cv2.CV_16SC2)
+    stack = np.dstack([np.where(conf > 0, disp, -1.0e5), conf]).astype(np.float32)
+    out = cv2.remap(stack, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=(-1.0e5, 0.0, 0.0, 0.0)).reshape(-1, 2)[: back.count]
+    ok = out[:, 0] > 0
+    ref_z = back.kfb[ok] / out[ok, 0]
+    keep = (ref_z >= 0.5) & (ref_z <= 80.0)
+    assert idx.size > 0.5 * back.count
+    assert np.array_equal(idx, back.index[ok][keep])
+    np.testing.assert_allclose(z, ref_z[keep], rtol=1e-5, atol=0)
+    np.testing.assert_allclose(c, out[ok, 1][keep], rtol=0, atol=1e-5)

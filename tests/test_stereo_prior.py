@@ -197,9 +197,9 @@ def test_backprojection_skipping_empty_map_rows_loses_no_sample(dense):
         conf = np.where(conf > 0, conf, 0.7).astype(np.float32)
         conf[::7, ::5] = 0  # holes
     idx, z, c = back.values(disp, conf, 0.5, 80.0)
-    stack = np.dstack([np.where(conf > 0, disp, -1.0e5), conf]).astype(np.float32)
-    out = cv2.remap(stack, back.map1, back.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=(-1.0e5, 0.0, 0.0, 0.0)).reshape(-1, 2)[: back.count]
+    out = np.stack([cv2.remap(img.astype(np.float32), back.map_x, back.map_y, cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=fill).reshape(-1)[: back.count]
+                    for img, fill in ((np.where(conf > 0, disp, -1.0e5), -1.0e5), (conf, 0.0))], axis=1)
     ok = out[:, 0] > 0
     ref_z = back.kfb[ok] / out[ok, 0]
     keep = (ref_z >= 0.5) & (ref_z <= 80.0)

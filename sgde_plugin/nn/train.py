@@ -31,12 +31,28 @@ MAX_DEPTH_EVAL = 80.0  # nuScenes evaluation cap
 
 
 @dataclass(frozen=True)
+class PriorWeight:
+    """A prior-loss weight that starts at ``start`` and moves linearly to ``final`` over the first ``steps``
+    training steps (a warm-up where the prior anchors the first steps), then stays at ``final``."""
+
+    final: float
+    start: float | None = None
+    steps: int = 0
+
+    def at(self, step: int) -> float:
+        """The weight at ``step`` (0-based)."""
+        if self.start is None or step >= self.steps:
+            return self.final
+        return self.start + (self.final - self.start) * step / self.steps
+
+
+@dataclass(frozen=True)
 class Arm:
     """One arm of a comparison: the prior as input channel or not, the prior loss weight or None."""
 
     name: str
     prior_input: bool
-    prior_weight: float | None
+    prior_weight: float | PriorWeight | None
     prior_loss: str = "l1"  # "l1": lambda * |D - D_p| (the paper); "log_l1": lambda * |log D - log D_p|
 
 
@@ -189,12 +205,14 @@ def start_at_depth(net: DepthNet, depth_m: float) -> None:
 
 
 def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: int, seed: int,
-              prior_weight: float | None, lr: float = 2e-4, self_supervision: SelfSupervision | None = None,
-              schedule: Schedule | None = None, prior_loss: str = "l1") -> float:
+              prior_weight: float | PriorWeight | None, lr: float = 2e-4,
+              self_supervision: SelfSupervision | None = None, schedule: Schedule | None = None,
+              prior_loss: str = "l1") -> float:
     """Train in place for `steps` steps of one frame (all cameras); returns seconds spent.
 
     The loss is the LiDAR-like supervised loss, or with ``self_supervision`` the view-synthesis loss;
-    ``prior_weight`` adds the prior loss (`prior_term` of form ``prior_loss``). ``schedule`` (default: Adam
+    ``prior_weight`` adds the prior loss (`prior_term` of form ``prior_loss``; a `PriorWeight` varies its weight
+    over the steps). ``schedule`` (default: Adam
     at ``lr``, no warm-up, no clipping) sets the optimiser.
     """
     schedule = schedule or Schedule(lr=lr)
@@ -203,17 +221,19 @@ def train_arm(net: DepthNet, seq: RigSequence, train_frames: list[int], steps: i
     opt = torch.optim.Adam(net.parameters(), lr=schedule.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: schedule.factor(i, steps))
     order = np.random.default_rng(seed).integers(0, len(train_frames), size=steps)
+    weight = prior_weight if isinstance(prior_weight, PriorWeight) or prior_weight is None else \
+        PriorWeight(prior_weight)
     net.train()
     t0 = time.perf_counter()
-    for k in order:
+    for step, k in enumerate(order):
         sl = slice(int(k) * n, (int(k) + 1) * n)
         out = net(rgb[sl], prior[sl] if net.use_prior else None, valid[sl] if net.use_prior else None)
         if self_supervision is None:
             loss = supervised_loss(out, sup[sl], net.scales)
         else:
             loss = self_supervision(out, train_frames[int(k)], rgb[sl], net.scales)
-        if prior_weight:
-            loss = loss + prior_term(out, prior[sl], valid[sl], net.scales, prior_weight, prior_loss)
+        if weight is not None and weight.at(step):
+            loss = loss + prior_term(out, prior[sl], valid[sl], net.scales, weight.at(step), prior_loss)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if schedule.clip is not None:

@@ -31,8 +31,8 @@ class BackProjection:
 
     shape: tuple[int, int]  # (H, W) of the original camera
     index: np.ndarray  # flat indices of the original pixels that land in the rectified canvas
-    map1: np.ndarray  # fixed-point cv2.remap maps (rows x _ROW) of their rectified positions (padded)
-    map2: np.ndarray
+    map_x: np.ndarray  # float32 cv2.remap maps (rows x _ROW) of their rectified positions (padded), on the
+    map_y: np.ndarray  # 1/32 px grid of OpenCV's fixed-point maps (float maps remap float data faster)
     kfb: np.ndarray  # (N,) float32: depth = kfb / disparity
     core: tuple[int, int]  # (H, Wc) of the disparity maps sampled (the core columns)
     corners: np.ndarray  # (rows, 4) flat indices into the core's summed-area table bounding each map row's footprint
@@ -64,14 +64,14 @@ class BackProjection:
         rows, out = self._remapped(disparity, confidence, edge_px)
         if out is None:
             return np.zeros(0, np.intp), np.zeros(0, np.float32), np.zeros(0, np.float32)
-        got = np.flatnonzero(out[:, 0] > 0)
+        got = np.flatnonzero(out[0] > 0)
         pos = got if rows is None else rows[got // _ROW] * _ROW + got % _ROW
-        return pos, out[got, 0], out[got, 1]
+        return pos, out[0][got], out[1][got]
 
     def _remapped(
         self, disparity: np.ndarray, confidence: np.ndarray, edge_px: float = 1.0
-    ) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """(map rows remapped, None = all; their (rows x _ROW, 2) disparity and confidence), (None, None) if none.
+    ) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+        """(map rows remapped, None = all; their flat disparity and confidence samples), (None, None) if none.
 
         Map rows whose bilinear footprints hold no usable canvas pixel (summed-area test) would
         only sample the sentinel; where they are the majority they are skipped, the others remapped
@@ -96,10 +96,10 @@ class BackProjection:
         if rows.size == 0:
             return None, None
         full = rows.size > 0.5 * self.corners.shape[0]  # gathering most rows costs more than it saves
-        map1, map2 = (self.map1, self.map2) if full else (self.map1[rows], self.map2[rows])
-        stack = cv2.merge([d, confidence.astype(np.float32)])
-        out = cv2.remap(stack, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=(_SENTINEL, 0.0, 0.0, 0.0)).reshape(-1, 2)
+        map_x, map_y = (self.map_x, self.map_y) if full else (self.map_x[rows], self.map_y[rows])
+        conf = np.asarray(confidence, np.float32)
+        out = tuple(cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=fill).reshape(-1) for img, fill in ((d, _SENTINEL), (conf, 0.0)))
         return (None if full else rows), out
 
     def values(
@@ -109,18 +109,20 @@ class BackProjection:
         rows, out = self._remapped(disparity, confidence)
         if out is None:
             return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32)
+        d_all, c_all = out
         if rows is not None:  # a few map rows: gather their pixels, then as `_samples`
-            got = np.flatnonzero(out[:, 0] > 0)
+            got = np.flatnonzero(d_all > 0)
             pos = rows[got // _ROW] * _ROW + got % _ROW
-            z = self.kfb[pos] / out[got, 0]
+            z = self.kfb[pos] / d_all[got]
             keep = (z >= min_depth) & (z <= max_depth)
-            return self.index[pos[keep]], z[keep], out[got[keep], 1]
-        d_all, c_all = cv2.split(out.reshape(-1, 1, 2))
-        d = d_all.reshape(-1)[: self.count]  # every map row: the first N samples are the covered pixels
-        with np.errstate(divide="ignore"):
+            return self.index[pos[keep]], z[keep], c_all[got[keep]]
+        d = d_all[: self.count]  # every map row: the first N samples are the covered pixels
+        with np.errstate(divide="ignore", invalid="ignore"):
             z = self.kfb / d
-        sel = np.flatnonzero((d > 0) & (z >= min_depth) & (z <= max_depth))
-        return self.index[sel], z[sel], c_all.reshape(-1)[sel]
+        # kfb > 0: a sample without a value (d <= 0) gives z <= 0 or -inf, outside any range with min_depth > 0
+        ok = (z >= min_depth) & (z <= max_depth) if min_depth > 0 else (d > 0) & (z >= min_depth) & (z <= max_depth)
+        sel = np.flatnonzero(ok)
+        return self.index[sel], z[sel], c_all[sel]
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float
@@ -183,6 +185,7 @@ def _backprojection(
     map_x[:n] = u[index].numpy() - x0
     map_y[:n] = v[index].numpy()
     map1, map2 = cv2.convertMaps(map_x.reshape(rows, _ROW), map_y.reshape(rows, _ROW), cv2.CV_16SC2)
+    fine_x, fine_y = cv2.convertMaps(map1, map2, cv2.CV_32FC1)  # the same positions, as float maps
     # each map row's footprint: the integer corners remap uses (map1) and the next column and row
     h, w = rect.height, x1 - x0
     cx, cy = map1[..., 0].astype(np.int64), map1[..., 1].astype(np.int64)
@@ -192,8 +195,8 @@ def _backprojection(
     return BackProjection(
         shape=(camera.height, camera.width),
         index=index.numpy().astype(np.int64),
-        map1=map1,
-        map2=map2,
+        map_x=fine_x,
+        map_y=fine_y,
         kfb=(k.numpy() * K[0, 0] * baseline_m).astype(np.float32),
         core=(h, w),
         corners=corners,

@@ -21,7 +21,8 @@ def grey_float(image: np.ndarray) -> np.ndarray:
 def shift_maps(disp: np.ndarray, sign: int, x0: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """cv2.remap maps sampling the other image at canvas column x0 + j + sign * d, same row."""
     h, w = disp.shape
-    map_x = np.arange(x0, x0 + w, dtype=np.float32)[None, :] + sign * disp.astype(np.float32)
+    cols, d = np.arange(x0, x0 + w, dtype=np.float32)[None, :], np.asarray(disp, np.float32)
+    map_x = cols + d if sign > 0 else cols - d
     map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
     return map_x, map_y
 
@@ -45,9 +46,10 @@ def refine_disparity(
     would underestimate the slope and overshoot. `a` is the reference core (float32), `b` the other
     whole canvas (float32).
     """
-    db = np.zeros_like(b)
-    db[:, :-1] = b[:, 1:] - b[:, :-1]
-    d = disp.astype(np.float32).copy()
+    db = np.empty_like(b)
+    np.subtract(b[:, 1:], b[:, :-1], out=db[:, :-1])
+    db[:, -1] = 0
+    d = np.array(disp, np.float32)
     box = (window, window)
     for _ in range(iterations):
         map_x, map_y = shift_maps(d, sign, x0)
@@ -60,7 +62,7 @@ def refine_disparity(
         step = np.clip(num / np.maximum(den, 1e-3), -max_step, max_step)
         ok = valid & (den > 1.0)
         d[ok] += step[ok]
-    return np.where(valid, d, 0).astype(np.float32)
+    return np.where(valid, d, np.float32(0))
 
 
 def photometric_scores(
@@ -86,7 +88,7 @@ def photometric_scores(
     vb = cv2.blur(bw * bw, box) - mb * mb
     cov = cv2.blur(a * bw, box) - ma * mb
     ncc = cov / np.sqrt(np.maximum(va * vb, 1e-6))
-    ncc[(va < min_std**2) | (vb < min_std**2)] = -1.0
+    ncc[np.minimum(va, vb) < min_std**2] = -1.0
     gx = x_gradient(a)
     texture = np.sqrt(cv2.blur(gx * gx, box))
     return ncc, mad, texture
@@ -104,7 +106,7 @@ def lr_check(
     """
     h, w = disp_a.shape
     cols = np.arange(w, dtype=np.float32)[None, :]
-    x = np.rint(cols + sign * disp_a).astype(np.intp)
+    x = np.rint(cols + disp_a if sign > 0 else cols - disp_a).astype(np.intp)
     inside = (x >= 0) & (x < w)
     flat = np.clip(x, 0, w - 1)
     flat += np.arange(0, h * w, w)[:, None]  # flat index of the matched pixel, same row
@@ -112,7 +114,7 @@ def lr_check(
     other_c = conf_b.reshape(-1)[flat]
     diff = np.abs(disp_a - other)
     ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
-    return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32)
+    return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32, copy=False)
 
 
 def remove_islands(disp: np.ndarray, conf: np.ndarray, min_area: int, max_step: float = 1.0) -> None:

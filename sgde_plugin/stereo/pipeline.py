@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..rig import Frame, Rig
+from ..threads import opencv_threads
 from .backproject import fuse_into
 from .checks import MatchedPair, check_pair
 from .config import PRIOR_ALGO_VERSION, PriorConfig
@@ -122,14 +123,18 @@ class PriorBuilder:
             matched = [self.matcher.match(a, b, D) for a, b in self.matcher_inputs(plan, left, right)]
         (dl, cl), (dr_f, cr_f) = matched
         t_match = time.perf_counter() - t0
-        disp_l, conf_l = dl[:, x0:], cl[:, x0:].copy()
-        disp_r, conf_r = np.ascontiguousarray(dr_f[:, ::-1][:, :wc]), cr_f[:, ::-1][:, :wc].copy()
-        # a match must start on a pixel its camera sees, away from the black border
+        disp_l, disp_r = dl[:, x0:], np.ascontiguousarray(dr_f[:, ::-1][:, :wc])
+        # a match must start on a pixel its camera sees, away from the black border, and (the ground rule)
+        # not beyond the ground: a near object matched far
         border = cfg.sgbm.block_size // 2 + cfg.filters.border_px
-        for conf, disp, valid, side in ((conf_l, disp_l, valid_l, plan.left), (conf_r, disp_r, valid_r, plan.right)):
-            conf[~side.inner_for(valid, border, plan.pair.core_x)] = 0
-            if side.min_disparity is not None:  # beyond the ground: a near object matched far
-                conf[disp < side.min_disparity] = 0
+        confs = []
+        for conf, disp, valid, side in ((cl[:, x0:], disp_l, valid_l, plan.left),
+                                        (cr_f[:, ::-1][:, :wc], disp_r, valid_r, plan.right)):
+            keep = side.inner_for(valid, border, plan.pair.core_x)
+            if side.min_disparity is not None:
+                keep = keep & (disp >= side.min_disparity)
+            confs.append(conf * keep)  # a new array: 0 where not kept
+        conf_l, conf_r = confs
         disp_l, conf_l2, disp_r, conf_r2 = check_pair(MatchedPair(left, right, x0, disp_l, conf_l, disp_r, conf_r), cfg)
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
@@ -187,11 +192,12 @@ class PriorBuilder:
             fuse_s[0] += time.perf_counter() - t0
             return prior
 
-        with ThreadPoolExecutor(self.threads) as pool:
-            parallel = pool if self.threads > 1 and len(self.plans) > 1 else None
+        parallel = self.threads > 1 and len(self.plans) > 1
+        # pairs in parallel: each OpenCV call runs in its own pair's thread (no nested stripes, no spinning pool)
+        with ThreadPoolExecutor(self.threads) as pool, opencv_threads(1 if parallel else cv2.getNumThreads()):
             costs = [p.pair.size[0] * p.pair.size[1] * p.pair.max_disparity for p in self.plans]
             results, out = run_pairs(self.plans, lambda p: self._pair_values(p, grey, masks, batched), needs, fuse,
-                                     parallel, costs)
+                                     pool if parallel else None, costs)
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
         timings["fuse"] = fuse_s[0]
         timings["total"] = time.perf_counter() - t_start
