@@ -97,13 +97,16 @@ def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
             "methods": details, "markdown": markdown_table(rows, digits=4)}
 
 
-def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: bool = True) -> dict[str, Any]:
-    """GLC from the noisy and from the exact start (and the peer from the noisy one) on one rendered rig."""
-    seq = synth_sequence(preset, 7, seed=seed, scale=0.5, capture=capture)
-    row: dict[str, Any] = {"rig": preset, "seed": seed, "capture": capture, "cameras": len(seq.rig.cameras)}
+def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: bool = True,
+                  frames: int = 7) -> dict[str, Any]:
+    """GLC from the noisy and from the exact start (and the peer from the noisy one) on one rendered rig of
+    `frames` frames, calibrated as one window."""
+    seq = synth_sequence(preset, frames, seed=seed, scale=0.5, capture=capture)
+    row: dict[str, Any] = {"rig": preset, "seed": seed, "capture": capture, "cameras": len(seq.rig.cameras),
+                           "frames": frames}
     for start, rig in (("noisy", seq.rig), ("exact", seq.rig_true)) if glc else ():
         t0 = time.perf_counter()
-        out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False)
+        out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False, window=frames)
         w = block["windows"][0]
         row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
@@ -123,11 +126,18 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
     return row
 
 
-def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS) -> dict[str, Any]:
-    """GLC (and a peer) on the presets and the random rigs; the table rows and which targets hold."""
+def random_rigs(seeds: Sequence[int]) -> tuple[tuple[str, int, str], ...]:
+    """The `rigs` argument of `accuracy` for some random-rig seeds (0-9 are the report set, 10+ development)."""
+    return tuple(("random", int(s), "sync") for s in seeds)
+
+
+def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS,
+             frames: int = 7) -> dict[str, Any]:
+    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window); the table rows and
+    which targets hold."""
     rows = []
     for preset, seed, capture in rigs:
-        row = _accuracy_row(preset, seed, capture, peer)
+        row = _accuracy_row(preset, seed, capture, peer, frames=frames)
         for start in ("noisy", "exact"):
             g = row[f"glc_{start}"]
             g["meets_targets"] = all(g[k] <= v for k, v in ACCURACY_TARGETS.items())

@@ -17,7 +17,7 @@ from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_desc
 from .guided import GuidedConfig, guided_search
 from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
-from .views import VirtualView, overlap_view
+from .views import VIEW_INTERPOLATIONS, VirtualView, overlap_view
 
 MATCHERS = ("sift", "loftr")
 STAGES = ("features", "matching", "ransac", "adjustment")
@@ -48,10 +48,12 @@ class MatchConfig:
     view_pair_scale: str = "min"
     level_views: bool = False
     antialias_views: bool = False
+    view_interpolation: str = "lanczos"  # how views sample their camera: views.VIEW_INTERPOLATIONS
     cross_time: bool = True
     guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
     consensus_px: float = 1.5
     guided_cross_time: bool = True
+    temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     seed: int = 0
 
@@ -101,6 +103,7 @@ class PairMatches:
     inliers: int = 0
     view_pairs: int = 0
     observation_pairs: list[ObservationPair] = field(default_factory=list)
+    links: list[PairMatches] = field(default_factory=list)  # same-camera track links (`temporal_links`)
 
     def __len__(self) -> int:
         return int(self.frame_a.shape[0])
@@ -111,7 +114,7 @@ class PairMatches:
         return PairMatches(self.cam_a, self.cam_b, self.frame_a[keep], self.frame_b[keep], self.uv_a[keep],
                            self.uv_b[keep], self.rays_a[keep], self.rays_b[keep], self.sigma_a[keep],
                            self.sigma_b[keep], self.kp_a[keep], self.kp_b[keep], self.tentative, self.gated, n,
-                           self.view_pairs, list(self.observation_pairs))
+                           self.view_pairs, list(self.observation_pairs), list(self.links))
 
     def observed_with(self, beta: int) -> PairMatches:
         """Only the correspondences of observation pairs with at least `beta` inliers (the paper's beta)."""
@@ -120,11 +123,23 @@ class PairMatches:
         out = self.select(keep)
         out.inliers = int(sum(o.inliers for o in self.observation_pairs if (o.t, o.t2) in good))
         out.view_pairs = len(good)
+        out.links = [_touching(link, out) for link in self.links]
         return out
 
     def same_time(self) -> PairMatches:
         """Only the correspondences between images of the same frame."""
         return self.select(self.frame_a == self.frame_b)
+
+
+def _touching(link: PairMatches, pm: PairMatches) -> PairMatches:
+    """The same-camera links of `link` that touch a keypoint of `pm`'s correspondences."""
+    ends = set()
+    for cam, frames, kps in ((pm.cam_a, pm.frame_a, pm.kp_a), (pm.cam_b, pm.frame_b, pm.kp_b)):
+        if cam == link.cam_a:
+            ends.update(zip(frames.tolist(), kps.tolist()))
+    keep = np.array([(fa, ka) in ends or (fb, kb) in ends for fa, ka, fb, kb in
+                     zip(link.frame_a.tolist(), link.kp_a.tolist(), link.frame_b.tolist(), link.kp_b.tolist())], bool)
+    return link.select(keep.reshape(-1))
 
 
 @dataclass
@@ -186,6 +201,9 @@ def find_correspondences(
     cfg = config or MatchConfig()
     if cfg.matcher not in MATCHERS:
         raise InputError(None, "matcher", f"unknown matcher {cfg.matcher!r} (expected {', '.join(MATCHERS)})")
+    if cfg.view_interpolation not in VIEW_INTERPOLATIONS:
+        raise InputError(None, "view_interpolation", f"unknown interpolation {cfg.view_interpolation!r} "
+                         f"(expected {', '.join(VIEW_INTERPOLATIONS)})")
     timings = timings or Timings()
     cams = {c.name: c for c in cameras}
     ego = capture_poses(ego_to_world, len(cameras))
@@ -211,7 +229,48 @@ def find_correspondences(
         verified = {(a, b): _consistent(cams[a], cams[b], verified[(a, b)], poses[a], poses[b], cfg)
                     for a, b in pairs}
         timings.add("ransac", t0)
-    return [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+    out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+    if feats is not None and cfg.temporal_links and cfg.cross_time and T > 1:
+        t0 = time.perf_counter()
+        for pm in out:
+            pm.links = temporal_links(cams, pm, feats, poses, cfg, T)
+        timings.add("matching", t0)
+    return out
+
+
+def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses: dict[str, np.ndarray],
+                   cfg: MatchConfig, T: int) -> list[PairMatches]:
+    """For each camera of pair `pm`, matches of its overlap view's keypoints between consecutive frames
+    (verified against the known ego motion) that touch a keypoint of the pair's verified correspondences.
+
+    They join a correspondence's keypoint to the same point in the camera's next frame, so the adjustment's
+    tracks see a point from both cameras at several frames: its depth is then fixed by the ego motion (a
+    baseline of metres) instead of by the mount's baseline alone, which separates a narrow pair's rotation
+    from its translation. Keypoints that stay at one pixel (`mark_fixed`: at infinity or moving with the
+    car) are left out."""
+    rng = np.random.default_rng(cfg.seed)
+    unlimited = replace(cfg, max_per_view_pair=1 << 30)
+    links = []
+    ends = ((pm.cam_a, pm.cam_b, pm.frame_a, pm.kp_a), (pm.cam_b, pm.cam_a, pm.frame_b, pm.kp_b))
+    for cam, other, frames, kps in ends:
+        used = {t: set(kps[frames == t].tolist()) for t in range(T)}
+        verified = []
+        for t in range(T - 1):
+            if not (used[t] or used[t + 1]):
+                continue
+            fa, fb = feats[(t, cam, other)], feats[(t + 1, cam, other)]
+            tent = _descriptor_matches(fa.subset(~fa.fixed), fb.subset(~fb.fixed), cfg)
+            rel = _rel(poses, cam, cam, t, t + 1)
+            v = verify_observation_pair(cams[cam], cams[cam], t, t + 1, tent, rel, unlimited, rng)
+            if v.part is None:
+                continue
+            touch = np.isin(v.part["ka"], list(used[t])) | np.isin(v.part["kb"], list(used[t + 1]))
+            if touch.any():
+                part = {k: x[touch] for k, x in v.part.items()}
+                verified.append(Verified(replace(v.pair, kept=int(touch.sum())), part))
+        if verified:
+            links.append(assemble_pair(cam, cam, verified))
+    return links
 
 
 def _verify_all(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], T: int, poses: dict[str, np.ndarray],
@@ -354,6 +413,11 @@ def _sift_tentative(feats: dict, grids: dict, a: str, b: str, t: int, t2: int, c
     fa, fb = feats[(t, a, b)], feats[(t2, b, a)]
     sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | ~fa.fixed))
     sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv) & ((t == t2) | ~fb.fixed))
+    return _descriptor_matches(sa, sb, cfg)
+
+
+def _descriptor_matches(sa: Keypoints, sb: Keypoints, cfg: MatchConfig) -> Tentative:
+    """Mutual ratio-test matches between two keypoint sets, with their sigmas from the keypoint sizes."""
     ia, ib = match_descriptors(sa.desc, sb.desc, cfg.ratio)
     return Tentative(sa.uv[ia], sb.uv[ib], np.maximum(cfg.sigma_floor_px, sa.size[ia] * cfg.sigma_per_size),
                      np.maximum(cfg.sigma_floor_px, sb.size[ib] * cfg.sigma_per_size), sa.index[ia], sb.index[ib])
@@ -463,7 +527,7 @@ def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np
     mask = view.valid.copy()
     if static is not None:
         mask &= view.warp(static.astype(np.uint8), cv2.INTER_NEAREST) > 0
-    gray = to_gray(view.warp(image, antialias=cfg.antialias_views))
+    gray = to_gray(view.warp(image, VIEW_INTERPOLATIONS[cfg.view_interpolation], antialias=cfg.antialias_views))
     kv = sift_features(gray, mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
     uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
     scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])

@@ -249,7 +249,7 @@ def _adjust_cameras(
 ) -> tuple[dict[str, np.ndarray], AdjustResult, list[float], list[int]]:
     names = [c.name for c in cameras]
     index = {n: i for i, n in enumerate(names)}
-    tracks = observations(matches, index)
+    tracks = observations([*matches, *(link for pm in matches for link in pm.links)], index)
     S0 = np.stack([c.sensor_to_ego for c in cameras])
     focal = np.array([pixels_per_radian(c.intrinsics) for c in cameras])
     maps = [focal_map(c.intrinsics) for c in cameras] if config.refine_focal else None
