@@ -17,7 +17,7 @@ from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_desc
 from .guided import GuidedConfig, guided_search
 from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
-from .views import VirtualView, overlap_view
+from .views import VIEW_INTERPOLATIONS, VirtualView, overlap_view
 
 MATCHERS = ("sift", "loftr")
 STAGES = ("features", "matching", "ransac", "adjustment")
@@ -48,6 +48,7 @@ class MatchConfig:
     view_pair_scale: str = "min"
     level_views: bool = False
     antialias_views: bool = False
+    view_interpolation: str = "lanczos"  # how views sample their camera: views.VIEW_INTERPOLATIONS
     cross_time: bool = True
     guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
     consensus_px: float = 1.5
@@ -200,6 +201,9 @@ def find_correspondences(
     cfg = config or MatchConfig()
     if cfg.matcher not in MATCHERS:
         raise InputError(None, "matcher", f"unknown matcher {cfg.matcher!r} (expected {', '.join(MATCHERS)})")
+    if cfg.view_interpolation not in VIEW_INTERPOLATIONS:
+        raise InputError(None, "view_interpolation", f"unknown interpolation {cfg.view_interpolation!r} "
+                         f"(expected {', '.join(VIEW_INTERPOLATIONS)})")
     timings = timings or Timings()
     cams = {c.name: c for c in cameras}
     ego = capture_poses(ego_to_world, len(cameras))
@@ -523,7 +527,7 @@ def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np
     mask = view.valid.copy()
     if static is not None:
         mask &= view.warp(static.astype(np.uint8), cv2.INTER_NEAREST) > 0
-    gray = to_gray(view.warp(image, antialias=cfg.antialias_views))
+    gray = to_gray(view.warp(image, VIEW_INTERPOLATIONS[cfg.view_interpolation], antialias=cfg.antialias_views))
     kv = sift_features(gray, mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
     uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
     scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])

@@ -18,6 +18,12 @@ from ..cameras import Camera, Pinhole
 from ..stereo.rectify import angular_resolution, camera_maps, default_rim_px
 from .overlap import OverlapGrid
 
+# how a view samples its camera (`MatchConfig.view_interpolation`): Lanczos keeps the blur of a resampled pixel
+# nearly the same at every sub-pixel phase of the view's grid against the camera's; bilinear blurs a pixel
+# that falls half-way between four source pixels much more than one that falls on a pixel, and SIFT's
+# positions follow that varying blur (see tests/test_calib_views.py)
+VIEW_INTERPOLATIONS = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "lanczos": cv2.INTER_LANCZOS4}
+
 
 @dataclass
 class VirtualView:

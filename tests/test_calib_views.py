@@ -1,0 +1,48 @@
+"""Virtual views: how the resampling into a view moves SIFT's keypoints."""
+
+import numpy as np
+
+from sgde_plugin.calib.features import sift_features
+from sgde_plugin.calib.views import VIEW_INTERPOLATIONS, VirtualView
+from sgde_plugin.cameras import Camera, Pinhole
+
+
+def _blobs(rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Small bright and dark Gaussian blobs (sigma 1-1.6 px) at known sub-pixel centres on a grey image."""
+    yy, xx = np.mgrid[0:size, 0:size].astype(float)
+    img, centres = np.full((size, size), 100.0), []
+    for i in range(12):
+        for j in range(12):
+            cx, cy = 14 + 18.5 * i + rng.uniform(-2, 2), 14 + 18.5 * j + rng.uniform(-2, 2)
+            centres.append((cx, cy))
+            sigma = rng.uniform(1.0, 1.6)
+            img += rng.choice([-1, 1]) * 80 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2))
+    return np.clip(img, 0, 255).astype(np.uint8), np.array(centres)
+
+
+def test_lanczos_views_keep_keypoints_where_the_blobs_are():
+    """A view that samples its camera 1.25-1.4x finer and turned by 5-15 degrees (as the fisheye's views do):
+    with bilinear sampling SIFT's positions, mapped back to the camera, miss the blob centres by a median
+    0.019 px, with Lanczos (the default) by 0.010 px, because bilinear blurs each view pixel by
+    how far it falls between source pixels. Three random images; asserted: Lanczos below 0.7x bilinear."""
+    rng = np.random.default_rng(0)
+    S = 240
+    err = {"linear": [], "lanczos": []}
+    for _ in range(3):
+        img, centres = _blobs(rng, S)
+        zoom, th = 1.0 / rng.uniform(0.72, 0.8), np.radians(rng.uniform(5, 15))
+        W = int(S * zoom * 0.95)
+        A = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]]) / zoom  # view offset -> source offset
+        vy, vx = np.mgrid[0:W, 0:W].astype(float)
+        off = np.stack([vx - (W - 1) / 2, vy - (W - 1) / 2], -1) @ A.T + (S - 1) / 2
+        K = np.array([[zoom * 100.0, 0, (W - 1) / 2], [0, zoom * 100.0, (W - 1) / 2], [0, 0, 1]])
+        view = VirtualView(Camera("v", Pinhole(W, W, K), np.eye(4)), off[..., 0].astype(np.float32),
+                           off[..., 1].astype(np.float32), np.ones((W, W), bool), np.eye(3), 1.0 / zoom)
+        for name in err:
+            src = (sift_features(view.warp(img, VIEW_INTERPOLATIONS[name])).uv - (W - 1) / 2) @ A.T + (S - 1) / 2
+            d = np.linalg.norm(src[None] - centres[:, None], axis=2).min(axis=1)
+            err[name].extend(d[d < 1.0])
+    med = {k: float(np.median(v)) for k, v in err.items()}
+    assert min(len(v) for v in err.values()) > 300
+    assert med["lanczos"] < 0.7 * med["linear"], med
+    assert med["linear"] < 0.03 and med["lanczos"] < 0.015, med
