@@ -137,6 +137,8 @@ def test_options_and_output_paths(rig_dir, tmp_path, capsys):
          "--opset: must be between 17 and"),
         (["cache", "info", "nosuchprotocol://x"], "unsupported cache location"),
         (["calibrate", str(rig_dir), "--out", "x.json", "--alpha", "nan"], "argument --alpha"),
+        (["calibrate", str(rig_dir), "--out", str(tmp_path / "x.json"), "--masks", str(afile)],
+         "mask folder not found"),
     ]
     for argv, expected in cases:
         assert main(argv) == 2, argv

@@ -151,3 +151,37 @@ def test_backprojection_float_maps_sit_on_the_fixed_point_grid():
     assert np.array_equal(idx, back.index[ok][keep])
     np.testing.assert_allclose(z, ref_z[keep], rtol=1e-5, atol=0)
     np.testing.assert_allclose(c, out[ok, 1][keep], rtol=0, atol=1e-5)
+
+
+def test_warp_on_the_box_of_the_valid_canvas_equals_a_whole_canvas_remap():
+    """The warp maps cover only the box of the target pixels the source sees; grey, colour, float and
+    nearest-neighbour warps equal one remap over the whole target bit for bit (a rectified pinhole canvas,
+    and a fisheye's virtual pinholes with their rim)."""
+    import cv2
+
+    from sgde_plugin.stereo.rectify import WarpMaps, camera_maps
+    from sgde_plugin.stereo.virtual import virtual_pinholes
+
+    rig, _, _ = pinhole_scene()
+    plan = PriorBuilder(rig, PriorConfig()).plans[0]
+    fish, _, _ = fisheye_scene()
+    cases = [(rig.camera(plan.left.camera), plan.pair.rect_left, 0),
+             (rig.camera(plan.right.camera), plan.pair.rect_right, 0)]
+    cases += [(fish.camera("F"), half, 3) for half in virtual_pinholes(fish.camera("F"))]
+    rng = np.random.default_rng(1)
+    cropped = 0
+    for src, dst, rim in cases:
+        maps = WarpMaps.between(src, dst, rim)
+        rows, cols = maps.box
+        assert maps.map1.shape[:2] == (rows.stop - rows.start, cols.stop - cols.start)
+        assert maps.valid[rows, cols].sum() == maps.valid.sum() > 0
+        cropped += maps.map1.shape[0] * maps.map1.shape[1] < 0.9 * maps.valid.size
+        map_x, map_y, _ = camera_maps(src, dst, rim)
+        full1, full2 = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+        for image in (rng.integers(0, 256, (src.height, src.width), dtype=np.uint8),
+                      rng.integers(0, 256, (src.height, src.width, 3), dtype=np.uint8),
+                      rng.random((src.height, src.width), dtype=np.float32)):
+            for interp in (cv2.INTER_LINEAR, cv2.INTER_NEAREST):
+                ref = cv2.remap(image, full1, full2, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                assert np.array_equal(maps.warp(image, interp), ref)
+    assert cropped >= 2  # the rectified canvases are cut, not just the trivial whole box

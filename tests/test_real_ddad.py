@@ -88,7 +88,7 @@ def _copy_scene(tmp_path: Path) -> Path:
     return dst
 
 
-@pytest.mark.parametrize("defect", ["truncated", "missing", "rig_lacks_camera", "unknown_preset"])
+@pytest.mark.parametrize("defect", ["truncated", "missing", "rig_lacks_camera", "unknown_preset", "no_masks"])
 def test_bench_real_bad_input_is_one_line_exit_2(defect: str, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     import json
 
@@ -97,6 +97,9 @@ def test_bench_real_bad_input_is_one_line_exit_2(defect: str, tmp_path: Path, ca
     args = ["bench", "real", str(scene)]
     if defect == "unknown_preset":
         pass
+    elif defect == "no_masks":
+        args += ["--masks", str(tmp_path / "nomasks")]
+        expected = "nomasks: mask folder not found"
     elif defect == "truncated":
         victim.write_bytes(victim.read_bytes()[:1000])
         expected = f"{victim}: not a readable .npz"

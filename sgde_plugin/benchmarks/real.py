@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from ..masks import attach_masks
 from ..readers.detect import load_rig
 from ..rig import Rig, read_rig_json
 from ..stereo.config import PriorConfig
@@ -93,13 +94,16 @@ def evaluate_source(rig: Rig, rig_overlap: Rig, images: dict, gts: dict, masks: 
 
 
 def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: PriorConfig | None = None,
-             max_frames: int | None = None) -> dict[str, Any]:
+             max_frames: int | None = None, masks: str | Path | None = None) -> dict[str, Any]:
     """The benchmark's report: {"sources": {name: evaluation report}, "seconds": ..., "load_avg": ...}.
 
-    `max_frames` keeps the first frames only (for quick checks; the benchmark uses all)."""
+    `max_frames` keeps the first frames only (for quick checks; the benchmark uses all); `masks`: a folder
+    of static masks (`sgde masks`) for cameras without their own: the prior and the LiDAR truth leave them out."""
     t_start = time.perf_counter()
     config = config or PriorConfig()
     rig = load_rig(path)
+    if masks is not None:
+        rig = attach_masks(rig, masks)
     if max_frames is not None:
         rig = replace(rig, frames=rig.frames[:max_frames])
     sources = {"dataset": rig, **{str(p): _pose_source(rig, p) for p in rigs}}
@@ -110,6 +114,7 @@ def run_real(path: str | Path, rigs: list[str] | tuple[str, ...] = (), config: P
     reports = {name: evaluate_source(src, rig, images, gts, masks, config) for name, src in sources.items()}
     return {
         "dir": str(path), "frames": len(rig.frames), "cameras": rig.camera_names,
+        "masks": None if masks is None else str(masks),
         "pairs": [f"{a}|{b}" for a, b in rig.pairs], "max_depth": config.geometry.max_depth, "config": config.to_dict(),
         "sources": reports,
         "seconds": {"lidar_truth": round(t_truth, 2), "images": round(t_images, 2),

@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="`real` only: prior settings preset (ddad, nuscenes, fisheye, synthetic; default: none)")
     parser.add_argument("--config", default=None, metavar="FILE",
                         help="`real` only: YAML file of prior settings, as for `sgde prior --config`")
+    parser.add_argument("--masks", default=None, metavar="MASKDIR",
+                        help="`real` only: static masks <camera>.png (e.g. from `sgde masks`); the prior and the "
+                             "LiDAR truth leave the masked pixels out")
 
 
 def machine_description() -> dict:
@@ -93,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.names[:1] == ["real"]:
         return run_real_bench(args)
-    for flag, value in (("--rig", args.rig), ("--preset", args.preset), ("--config", args.config)):
+    for flag, value in (("--rig", args.rig), ("--preset", args.preset), ("--config", args.config),
+                        ("--masks", args.masks)):
         if value:
             raise InputError(None, flag, "only `sgde bench real DIR` takes this option")
     names = args.names or [n for n in BENCHMARKS if not (args.fast and n in SLOW)]
@@ -127,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_real_bench(args: argparse.Namespace) -> int:
-    """`sgde bench real DIR [--rig RIG.json ...] [--preset P] [--config F] [--json OUT]`: tables, optionally JSON."""
+    """`sgde bench real DIR [--rig RIG.json ...] [--preset P] [--config F] [--masks M] [--json OUT]`: tables, JSON."""
     from ..benchmarks.real import report_tables, run_real
     from ..io import atomic_write_text
 
@@ -136,7 +140,7 @@ def run_real_bench(args: argparse.Namespace) -> int:
     from ..stereo.presets import load_prior_config
 
     config = load_prior_config(args.config, args.preset)
-    report = run_real(args.names[1], args.rig, config)
+    report = run_real(args.names[1], args.rig, config, masks=args.masks)
     print(report_tables(report), flush=True)
     if args.json_out:
         record = {"machine": machine_description(), "results": {"real": report}}

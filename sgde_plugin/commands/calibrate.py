@@ -23,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=METHODS, default="glc", help="calibration method (default glc)")
     parser.add_argument("--frames", default=None, metavar="A:B", help="frame index range (Python slice, default all)")
     parser.add_argument("--matcher", choices=("sift", "loftr"), default="sift", help="feature matcher (default sift)")
+    parser.add_argument("--masks", default=None, metavar="MASKDIR",
+                        help="static masks <camera>.png (e.g. from `sgde masks`) for cameras without their own: "
+                             "no features are taken there")
     parser.add_argument("--loftr-weights", default=None, metavar="CKPT",
                         help="local LoFTR checkpoint for --matcher loftr (nothing is downloaded)")
     parser.add_argument("--window", type=integer(1, 100000), default=7,
@@ -94,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.alpha > 0:
         raise InputError(None, "--alpha", "must be positive")
     rig = load_rig(args.dir, check_images=True)
+    if args.masks:
+        from ..masks import attach_masks
+
+        rig = attach_masks(rig, args.masks)
     beta = default_beta(rig, args.matcher) if args.beta is None else args.beta
     if args.max_iterations < 1:
         raise InputError(None, "--max-iterations", "must be at least 1")

@@ -18,6 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "DIR/masks makes them the rig's masks")
     parser.add_argument("--frames", type=int, default=8,
                         help="frames used, spread over the sequence (default 8; at least 2, 3 are enough)")
+    parser.add_argument("--no-ground", action="store_true",
+                        help="do not use the rig's poses (ego motion, extrinsics) to tell the body from the road")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..io import write_image
-    from ..masks import estimate_static_mask, spread_frames
+    from ..masks import MaskSettings, estimate_static_mask, rig_ground_maps, spread_frames
     from ..readers.detect import load_rig
 
     if args.frames < 2:
@@ -38,12 +40,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(out, "--out", "exists and is not a folder")
     picked = [rig.frames[i].id for i in spread_frames(len(rig.frames), args.frames)]
     masks, rows = {}, []
+    settings = MaskSettings()
     for cam in rig.camera_names:
         user = rig.load_mask(cam)
         if user is not None:
             masks[cam], source = user, "user"
         else:
-            masks[cam], source = estimate_static_mask([rig.load_image(f, cam) for f in picked]), "estimated"
+            maps = None if args.no_ground else rig_ground_maps(rig, cam, picked, settings.max_ground_m)
+            masks[cam] = estimate_static_mask([rig.load_image(f, cam) for f in picked], settings, maps)
+            source = "estimated" if maps is None else "estimated, ground motion"
         rows.append({"camera": cam, "source": source, "masked": float(1.0 - masks[cam].mean())})
     out.mkdir(parents=True, exist_ok=True)
     for cam, mask in masks.items():
