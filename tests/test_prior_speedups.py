@@ -116,6 +116,19 @@ def test_parallel_build_runs_opencv_single_threaded_in_each_pair_thread_and_rest
     for name in one:
         assert np.array_equal(one[name].depth, two[name].depth)
         assert np.array_equal(one[name].confidence, two[name].confidence)
+    calls = []
+
+    def failing(*a):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("matcher failed")
+        return match(*a)
+
+    monkeypatch.setattr(type(builder.matcher), "match", failing)
+    with opencv_threads(2):
+        with pytest.raises(RuntimeError, match="matcher failed"):
+            builder.build(images)
+        assert cv2.getNumThreads() == 2  # restored after a failed build too
     with opencv_threads(3):
         assert cv2.getNumThreads() == 3
         with pytest.raises(RuntimeError), opencv_threads(1):

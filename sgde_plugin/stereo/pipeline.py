@@ -194,7 +194,8 @@ class PriorBuilder:
 
         parallel = self.threads > 1 and len(self.plans) > 1
         # pairs in parallel: each OpenCV call runs in its own pair's thread (no nested stripes, no spinning pool)
-        with ThreadPoolExecutor(self.threads) as pool, opencv_threads(1 if parallel else cv2.getNumThreads()):
+        # (the pool is left, i.e. every pair thread has ended, before OpenCV's count is restored)
+        with opencv_threads(1 if parallel else cv2.getNumThreads()), ThreadPoolExecutor(self.threads) as pool:
             costs = [p.pair.size[0] * p.pair.size[1] * p.pair.max_disparity for p in self.plans]
             results, out = run_pairs(self.plans, lambda p: self._pair_values(p, grey, masks, batched), needs, fuse,
                                      pool if parallel else None, costs)
