@@ -198,12 +198,7 @@ def find_correspondences(
     order of `cameras`). Stages: overlap prediction, features, tentative matches and verification per
     observation pair (two images), assembly per camera pair.
     """
-    cfg = config or MatchConfig()
-    if cfg.matcher not in MATCHERS:
-        raise InputError(None, "matcher", f"unknown matcher {cfg.matcher!r} (expected {', '.join(MATCHERS)})")
-    if cfg.view_interpolation not in VIEW_INTERPOLATIONS:
-        raise InputError(None, "view_interpolation", f"unknown interpolation {cfg.view_interpolation!r} "
-                         f"(expected {', '.join(VIEW_INTERPOLATIONS)})")
+    cfg = _checked(config or MatchConfig())
     timings = timings or Timings()
     cams = {c.name: c for c in cameras}
     ego = capture_poses(ego_to_world, len(cameras))
@@ -219,10 +214,7 @@ def find_correspondences(
     poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
     match = (lambda a, b, t, t2: _sift_tentative(feats, grids, a, b, t, t2, cfg)) if loftr is None else (
         lambda a, b, t, t2: _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg))
-    densify = None
-    if loftr is None and cfg.guided_below > 0:
-        def densify(a: str, b: str, t: int, t2: int, rel: np.ndarray, tent: Tentative) -> Tentative | None:
-            return _guided_tentative(feats, view_images, grids, cams, a, b, t, t2, rel, tent, cfg)
+    densify = _guided_densifier(feats, view_images, grids, cams, cfg) if loftr is None else None
     verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress, densify)
     if densify is not None:
         t0 = time.perf_counter()
@@ -231,11 +223,38 @@ def find_correspondences(
         timings.add("ransac", t0)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
     if feats is not None and cfg.temporal_links and cfg.cross_time and T > 1:
-        t0 = time.perf_counter()
-        for pm in out:
-            pm.links = temporal_links(cams, pm, feats, poses, cfg, T)
-        timings.add("matching", t0)
+        _add_temporal_links(out, cams, feats, poses, cfg, T, timings)
     return out
+
+
+def _guided_densifier(feats: dict, view_images: dict, grids: dict, cams: dict[str, Camera], cfg: MatchConfig
+                      ) -> Callable[[str, str, int, int, np.ndarray, Tentative], Tentative | None] | None:
+    """Guided matching along the starting rig's epipolar band for sparse observation pairs (None when off)."""
+    if cfg.guided_below <= 0:
+        return None
+
+    def densify(a: str, b: str, t: int, t2: int, rel: np.ndarray, tent: Tentative) -> Tentative | None:
+        return _guided_tentative(feats, view_images, grids, cams, a, b, t, t2, rel, tent, cfg)
+    return densify
+
+
+def _checked(cfg: MatchConfig) -> MatchConfig:
+    """The config, after checking its named choices (one clear error for an unknown one)."""
+    if cfg.matcher not in MATCHERS:
+        raise InputError(None, "matcher", f"unknown matcher {cfg.matcher!r} (expected {', '.join(MATCHERS)})")
+    if cfg.view_interpolation not in VIEW_INTERPOLATIONS:
+        raise InputError(None, "view_interpolation", f"unknown interpolation {cfg.view_interpolation!r} "
+                         f"(expected {', '.join(VIEW_INTERPOLATIONS)})")
+    return cfg
+
+
+def _add_temporal_links(out: list[PairMatches], cams: dict[str, Camera], feats: dict,
+                        poses: dict[str, np.ndarray], cfg: MatchConfig, T: int, timings: Timings) -> None:
+    """Attach each pair's same-camera track links (`temporal_links`), timed as matching."""
+    t0 = time.perf_counter()
+    for pm in out:
+        pm.links = temporal_links(cams, pm, feats, poses, cfg, T)
+    timings.add("matching", t0)
 
 
 def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses: dict[str, np.ndarray],
