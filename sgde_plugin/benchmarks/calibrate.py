@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calib import Timings, calibrate
+from ..calib import MatchConfig, Timings, calibrate
 from ..pairs import relative_pose_errors
 from ..rig import Rig
 from ..stereo.evaluate import evaluate_priors
@@ -98,15 +98,16 @@ def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
 
 
 def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: bool = True,
-                  frames: int = 7) -> dict[str, Any]:
+                  frames: int = 7, match_config: MatchConfig | None = None) -> dict[str, Any]:
     """GLC from the noisy and from the exact start (and the peer from the noisy one) on one rendered rig of
-    `frames` frames, calibrated as one window."""
+    `frames` frames, calibrated as one window (with `match_config`, default: the default settings)."""
     seq = synth_sequence(preset, frames, seed=seed, scale=0.5, capture=capture)
     row: dict[str, Any] = {"rig": preset, "seed": seed, "capture": capture, "cameras": len(seq.rig.cameras),
                            "frames": frames}
     for start, rig in (("noisy", seq.rig), ("exact", seq.rig_true)) if glc else ():
         t0 = time.perf_counter()
-        out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False, window=frames)
+        out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False, window=frames,
+                               match_config=match_config)
         w = block["windows"][0]
         row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
@@ -132,12 +133,12 @@ def random_rigs(seeds: Sequence[int]) -> tuple[tuple[str, int, str], ...]:
 
 
 def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS,
-             frames: int = 7) -> dict[str, Any]:
-    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window); the table rows and
-    which targets hold."""
+             frames: int = 7, match_config: MatchConfig | None = None) -> dict[str, Any]:
+    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window, GLC with `match_config`);
+    the table rows and which targets hold."""
     rows = []
     for preset, seed, capture in rigs:
-        row = _accuracy_row(preset, seed, capture, peer, frames=frames)
+        row = _accuracy_row(preset, seed, capture, peer, frames=frames, match_config=match_config)
         for start in ("noisy", "exact"):
             g = row[f"glc_{start}"]
             g["meets_targets"] = all(g[k] <= v for k, v in ACCURACY_TARGETS.items())
