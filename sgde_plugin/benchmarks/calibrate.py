@@ -33,8 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calib import Timings, calibrate
-from ..calib.correspondences import MatchConfig
+from ..calib import MatchConfig, Timings, calibrate
 from ..pairs import relative_pose_errors
 from ..rig import Rig
 from ..stereo.evaluate import evaluate_priors
@@ -103,7 +102,7 @@ def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
 def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: bool = True,
                   frames: int = 7, match_config: MatchConfig | None = None) -> dict[str, Any]:
     """GLC from the noisy and from the exact start (and the peer from the noisy one) on one rendered rig of
-    `frames` frames, calibrated as one window (`match_config`: the matcher's settings, default MatchConfig())."""
+    `frames` frames, calibrated as one window (with `match_config`, default: the default settings)."""
     seq = synth_sequence(preset, frames, seed=seed, scale=0.5, capture=capture)
     row: dict[str, Any] = {"rig": preset, "seed": seed, "capture": capture, "cameras": len(seq.rig.cameras),
                            "frames": frames}
@@ -139,8 +138,8 @@ def random_rigs(seeds: Sequence[int]) -> tuple[tuple[str, int, str], ...]:
 
 def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS,
              frames: int = 7, match_config: MatchConfig | None = None) -> dict[str, Any]:
-    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window); the table rows and
-    which targets hold."""
+    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window, GLC with `match_config`);
+    the table rows and which targets hold."""
     rows = []
     for preset, seed, capture in rigs:
         row = _accuracy_row(preset, seed, capture, peer, frames=frames, match_config=match_config)

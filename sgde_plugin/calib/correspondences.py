@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, is_dataclass, replace
 
 import cv2
 import numpy as np
@@ -17,6 +17,7 @@ from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_desc
 from .guided import GuidedConfig, guided_search
 from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
+from .refine import RefineConfig, apply_positions, refine_matches
 from .static_world import StaticConfig, gate_cross_time, mark_window
 from .views import VIEW_INTERPOLATIONS, VirtualView, overlap_view
 
@@ -57,12 +58,13 @@ class MatchConfig:
     temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     static: StaticConfig = field(default_factory=StaticConfig)  # matches across time on static points only
+    refine: bool = False  # sub-pixel patch alignment of the verified keypoints along their tracks (`refine.py`)
+    refinement: RefineConfig = field(default_factory=RefineConfig)
     seed: int = 0
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
-        return {k: (vars(getattr(self, k)) if k in ("guided", "static") else getattr(self, k))
-                for k in self.__dataclass_fields__}
+        return {k: (vars(v) if is_dataclass(v := getattr(self, k)) else v) for k in self.__dataclass_fields__}
 
 
 @dataclass(frozen=True)
@@ -230,8 +232,17 @@ def find_correspondences(
                     for a, b in pairs}
         timings.add("ransac", t0)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+    positions = None
+    if feats is not None and cfg.refine:
+        t0 = time.perf_counter()
+        out, facts = refine_matches(out, view_images, cams, poses, cfg.refinement)
+        positions = facts["positions"]
+        timings.add("refine", t0)
     if feats is not None and cfg.temporal_links and cfg.cross_time and T > 1:
         _add_temporal_links(out, cams, feats, poses, cfg, T, timings)
+        if positions is not None:  # links share keypoints with the tracks: the same refined positions
+            for pm in out:
+                pm.links = [apply_positions(link, positions, cams) for link in pm.links]
     return out
 
 
