@@ -16,7 +16,8 @@
    0.5, default noise: GLC from the noisy start and from the exact extrinsics, and with `peer="colmap"`
    COLMAP's rig bundle adjustment (benchmarks/colmap_peer.py) on the same images from the same noisy
    start; adjacent relative-pose errors against the truth. Targets: median rotation <= 0.02 deg, max
-   <= 0.05 deg, translation <= 2 cm, every window accepted where the ring is connected.
+   <= 0.05 deg, translation <= 2 cm, every window accepted where the ring is connected (for the random
+   rigs `ring_truth`: which pairs the rendered world lets link, benchmarks/ring_truth.py).
 
 Rendering is not timed. The machine's load average is recorded: wall times on a shared machine depend
 on it. `fast`: only the speed and pose accuracy of part 1 (no prior, no ablation).
@@ -40,6 +41,7 @@ from ..stereo.pipeline import PriorBuilder, PriorConfig
 from ..synth.sequence import SynthSequence, synth_sequence
 from ..tables import markdown_table
 from .colmap_peer import calibrate_colmap
+from .ring_truth import ring_truth
 
 METHOD_ORDER = ("none", "pairwise", "wo-glc", "glc")
 ACCURACY_TARGETS = {"rotation_median_deg": 0.02, "rotation_max_deg": 0.05, "translation_max_m": 0.02}
@@ -116,6 +118,8 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
                                "rotation_deg": [r["rotation_deg"] for r in relative_pose_errors(out, seq.rig_true)],
                                **_pose_errors(out, seq.rig_true)}
     row["input"] = _pose_errors(seq.rig, seq.rig_true)
+    if preset == "random":  # which pairs the world lets link (the truth, to judge the rejections)
+        row["ring_truth"] = ring_truth(seq)
     if peer == "colmap":
         ids = [f.id for f in seq.rig.frames]
         ego = np.stack([f.ego_to_world for f in seq.rig.frames])
