@@ -22,11 +22,11 @@ from sgde_plugin.stereo.presets import load_prior_config, save_prior_config
 from sgde_plugin.stereo.rectify import torch_threads
 
 SWEEP = PriorConfig.from_settings(matcher="planesweep")
-GROUND = Plane(np.zeros(3), np.array([0.0, 0, 1]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0]), seed=9)
 
 
 @pytest.fixture(autouse=True)
 def _one_torch_thread():
+    """Element-wise camera maths gains nothing from threads."""
     with torch_threads(1):
         yield
 

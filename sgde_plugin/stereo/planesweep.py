@@ -30,6 +30,7 @@ from ..cameras import Camera, Pinhole
 from ..pairs import left_right
 from ..rig import Rig
 from .backproject import BackProjection, backprojection
+from .checks import match_box
 from .config import PriorConfig
 from .filters import discontinuity_factor, grey_float, normalize_image, remove_islands, window_scores
 from .planning import facing_half, ground_disparity
@@ -164,16 +165,6 @@ def _reach(own: Camera, other: Camera, other_valid: np.ndarray, own_valid: np.nd
     return reach & own_valid
 
 
-def _box(mask: np.ndarray, grow: int) -> tuple[slice, slice] | None:
-    """Bounding box of a mask grown by `grow` px (clipped), None if empty."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return None
-    h, w = mask.shape
-    return (slice(max(0, rows[0] - grow), min(h, rows[-1] + 1 + grow)),
-            slice(max(0, cols[0] - grow), min(w, cols[-1] + 1 + grow)))
-
-
 def plan_sweeps(rig: Rig, config: PriorConfig) -> list[SweepPlan]:
     """Views, warp maps, homographies and backward maps of every pair of `rig` that the sweep can match."""
     with torch_threads(1):
@@ -205,7 +196,7 @@ def _plan_sweep(left: Camera, right: Camera, config: PriorConfig, rays: dict[str
     for k, cam in enumerate((left, right)):
         own, other = views[k], views[1 - k]
         reach = _reach(own, other, warps[1 - k].valid, warps[k].valid, inv)
-        box = _box(reach, grow)
+        box = match_box(reach, halo=grow)
         if box is None:
             return None
         if cam.name not in rays:
