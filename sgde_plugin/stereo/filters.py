@@ -83,12 +83,15 @@ def photometric_scores(
 
 
 def window_scores(
-    a: np.ndarray, bw: np.ndarray, valid: np.ndarray, window: int = 7, min_std: float = 2.0
+    a: np.ndarray, bw: np.ndarray, valid: np.ndarray, window: int = 7, min_std: float = 2.0,
+    offset: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`photometric_scores` of reference `a` against `bw`, the other image already warped onto it."""
+    """`photometric_scores` of reference `a` against `bw`, the other image already warped onto it
+    (`offset`: the brightness offset to remove; None = the median of a - bw over `valid`)."""
     box = (window, window)
     e = a - bw
-    offset = float(np.median(e[valid])) if valid.any() else 0.0
+    if offset is None:
+        offset = float(np.median(e[valid])) if valid.any() else 0.0
     mad = cv2.blur(np.abs(e - offset), box)
     ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
     va = cv2.blur(a * a, box) - ma * ma
