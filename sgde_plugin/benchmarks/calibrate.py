@@ -16,7 +16,8 @@
    0.5, default noise: GLC from the noisy start and from the exact extrinsics, and with `peer="colmap"`
    COLMAP's rig bundle adjustment (benchmarks/colmap_peer.py) on the same images from the same noisy
    start; adjacent relative-pose errors against the truth. Targets: median rotation <= 0.02 deg, max
-   <= 0.05 deg, translation <= 2 cm, every window accepted where the ring is connected.
+   <= 0.05 deg, translation <= 2 cm, every window accepted where the ring is connected (for the random
+   rigs `ring_truth`: which pairs the rendered world lets link, benchmarks/ring_truth.py).
 
 Rendering is not timed. The machine's load average is recorded: wall times on a shared machine depend
 on it. `fast`: only the speed and pose accuracy of part 1 (no prior, no ablation).
@@ -32,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calib import Timings, calibrate
+from ..calib import MatchConfig, Timings, calibrate
 from ..pairs import relative_pose_errors
 from ..rig import Rig
 from ..stereo.evaluate import evaluate_priors
@@ -40,6 +41,7 @@ from ..stereo.pipeline import PriorBuilder, PriorConfig
 from ..synth.sequence import SynthSequence, synth_sequence
 from ..tables import markdown_table
 from .colmap_peer import calibrate_colmap
+from .ring_truth import ring_truth
 
 METHOD_ORDER = ("none", "pairwise", "wo-glc", "glc")
 ACCURACY_TARGETS = {"rotation_median_deg": 0.02, "rotation_max_deg": 0.05, "translation_max_m": 0.02}
@@ -98,15 +100,16 @@ def _ablation(preset: str, frames: int, scale: float) -> dict[str, Any]:
 
 
 def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: bool = True,
-                  frames: int = 7) -> dict[str, Any]:
+                  frames: int = 7, match_config: MatchConfig | None = None) -> dict[str, Any]:
     """GLC from the noisy and from the exact start (and the peer from the noisy one) on one rendered rig of
-    `frames` frames, calibrated as one window."""
+    `frames` frames, calibrated as one window (with `match_config`, default: the default settings)."""
     seq = synth_sequence(preset, frames, seed=seed, scale=0.5, capture=capture)
     row: dict[str, Any] = {"rig": preset, "seed": seed, "capture": capture, "cameras": len(seq.rig.cameras),
                            "frames": frames}
     for start, rig in (("noisy", seq.rig), ("exact", seq.rig_true)) if glc else ():
         t0 = time.perf_counter()
-        out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False, window=frames)
+        out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False, window=frames,
+                               match_config=match_config)
         w = block["windows"][0]
         row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
@@ -115,6 +118,8 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
                                "rotation_deg": [r["rotation_deg"] for r in relative_pose_errors(out, seq.rig_true)],
                                **_pose_errors(out, seq.rig_true)}
     row["input"] = _pose_errors(seq.rig, seq.rig_true)
+    if preset == "random":  # which pairs the world lets link (the truth, to judge the rejections)
+        row["ring_truth"] = ring_truth(seq)
     if peer == "colmap":
         ids = [f.id for f in seq.rig.frames]
         ego = np.stack([f.ego_to_world for f in seq.rig.frames])
@@ -132,12 +137,12 @@ def random_rigs(seeds: Sequence[int]) -> tuple[tuple[str, int, str], ...]:
 
 
 def accuracy(peer: str | None = None, rigs: Sequence[tuple[str, int, str]] = ACCURACY_RIGS,
-             frames: int = 7) -> dict[str, Any]:
-    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window); the table rows and
-    which targets hold."""
+             frames: int = 7, match_config: MatchConfig | None = None) -> dict[str, Any]:
+    """GLC (and a peer) on the presets and the random rigs (`frames` frames, one window, GLC with `match_config`);
+    the table rows and which targets hold."""
     rows = []
     for preset, seed, capture in rigs:
-        row = _accuracy_row(preset, seed, capture, peer, frames=frames)
+        row = _accuracy_row(preset, seed, capture, peer, frames=frames, match_config=match_config)
         for start in ("noisy", "exact"):
             g = row[f"glc_{start}"]
             g["meets_targets"] = all(g[k] <= v for k, v in ACCURACY_TARGETS.items())

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, is_dataclass, replace
 
 import cv2
 import numpy as np
@@ -17,6 +17,8 @@ from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_desc
 from .guided import GuidedConfig, guided_search
 from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
+from .refine import RefineConfig, apply_positions, refine_matches
+from .static_world import StaticConfig, gate_cross_time, mark_window
 from .views import VIEW_INTERPOLATIONS, VirtualView, overlap_view
 
 MATCHERS = ("sift", "loftr")
@@ -55,11 +57,14 @@ class MatchConfig:
     guided_cross_time: bool = True
     temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
     guided: GuidedConfig = field(default_factory=GuidedConfig)
+    static: StaticConfig = field(default_factory=StaticConfig)  # matches across time on static points only
+    refine: bool = False  # sub-pixel patch alignment of the verified keypoints along their tracks (`refine.py`)
+    refinement: RefineConfig = field(default_factory=RefineConfig)
     seed: int = 0
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
-        return {k: (vars(getattr(self, k)) if k == "guided" else getattr(self, k)) for k in self.__dataclass_fields__}
+        return {k: (vars(v) if is_dataclass(v := getattr(self, k)) else v) for k in self.__dataclass_fields__}
 
 
 @dataclass(frozen=True)
@@ -212,7 +217,12 @@ def find_correspondences(
         involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
         feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress, view_images)
     poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
-    match = (lambda a, b, t, t2: _sift_tentative(feats, grids, a, b, t, t2, cfg)) if loftr is None else (
+    if feats is not None and cfg.cross_time and cfg.static.enabled and T > 1:
+        t0 = time.perf_counter()
+        mark_window(feats, {n: c.intrinsics for n, c in cams.items()}, poses, cfg.static)
+        timings.add("features", t0)
+    match = (lambda a, b, t, t2: _static_only(_sift_tentative(feats, grids, a, b, t, t2, cfg), feats, cams, a, b, t,
+                                              t2, _rel(poses, a, b, t, t2), cfg)) if loftr is None else (
         lambda a, b, t, t2: _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg))
     densify = _guided_densifier(feats, view_images, grids, cams, cfg) if loftr is None else None
     verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress, densify)
@@ -222,8 +232,17 @@ def find_correspondences(
                     for a, b in pairs}
         timings.add("ransac", t0)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+    positions = None
+    if feats is not None and cfg.refine:
+        t0 = time.perf_counter()
+        out, facts = refine_matches(out, view_images, cams, poses, cfg.refinement)
+        positions = facts["positions"]
+        timings.add("refine", t0)
     if feats is not None and cfg.temporal_links and cfg.cross_time and T > 1:
         _add_temporal_links(out, cams, feats, poses, cfg, T, timings)
+        if positions is not None:  # links share keypoints with the tracks: the same refined positions
+            for pm in out:
+                pm.links = [apply_positions(link, positions, cams) for link in pm.links]
     return out
 
 
@@ -278,7 +297,7 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
             if not (used[t] or used[t + 1]):
                 continue
             fa, fb = feats[(t, cam, other)], feats[(t + 1, cam, other)]
-            tent = _descriptor_matches(fa.subset(~fa.fixed), fb.subset(~fb.fixed), cfg)
+            tent = _descriptor_matches(fa.subset(fa.across_time), fb.subset(fb.across_time), cfg)
             rel = _rel(poses, cam, cam, t, t + 1)
             v = verify_observation_pair(cams[cam], cams[cam], t, t + 1, tent, rel, unlimited, rng)
             if v.part is None:
@@ -428,11 +447,23 @@ def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str]
 
 def _sift_tentative(feats: dict, grids: dict, a: str, b: str, t: int, t2: int, cfg: MatchConfig) -> Tentative:
     """Mutual ratio-test matches of the keypoints inside each other's predicted overlap; across time without
-    the keypoints that stay at one pixel (`mark_fixed`)."""
+    the keypoints that stay at one pixel (`mark_fixed`) or move unlike a static point (`static_world`)."""
     fa, fb = feats[(t, a, b)], feats[(t2, b, a)]
-    sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | ~fa.fixed))
-    sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv) & ((t == t2) | ~fb.fixed))
+    sa = fa.subset(grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | fa.across_time))
+    sb = fb.subset(grids[(b, a)].lookup(t2, t, fb.uv) & ((t == t2) | fb.across_time))
     return _descriptor_matches(sa, sb, cfg)
+
+
+def _static_only(tent: Tentative, feats: dict, cams: dict[str, Camera], a: str, b: str, t: int, t2: int,
+                 rel: np.ndarray, cfg: MatchConfig) -> Tentative:
+    """Across time, only the tentative matches whose triangulated range agrees with what each keypoint's own
+    camera says over time (`static_world.gate_cross_time`; rel: a at t -> b at t2, starting rig)."""
+    if t == t2 or not cfg.static.enabled or not len(tent.uv_a):
+        return tent
+    ra, _ = cams[a].intrinsics.unproject(tent.uv_a)
+    rb, _ = cams[b].intrinsics.unproject(tent.uv_b)
+    keep = gate_cross_time(tent.kp_a, tent.kp_b, ra, rb, feats[(t, a, b)], feats[(t2, b, a)], rel, cfg.static)
+    return Tentative(*(getattr(tent, k)[keep] for k in ("uv_a", "uv_b", "sigma_a", "sigma_b", "kp_a", "kp_b")))
 
 
 def _descriptor_matches(sa: Keypoints, sb: Keypoints, cfg: MatchConfig) -> Tentative:
@@ -568,7 +599,7 @@ def _guided_tentative(feats: dict, view_images: dict, grids: dict, cams: dict[st
     if va is None or vb is None:
         return None
     fa = feats[(t, a, b)]
-    keep = grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | ~fa.fixed) & ~np.isin(fa.index, tent.kp_a)
+    keep = grids[(a, b)].lookup(t, t2, fa.uv) & ((t == t2) | fa.across_time) & ~np.isin(fa.index, tent.kp_a)
     keep[np.flatnonzero(keep)[~_first_at_position(fa.view_uv[keep])]] = False
     sa = fa.subset(keep)
     rel_view = _rotation4(vb.view.R).T @ rel @ _rotation4(va.view.R)

@@ -20,8 +20,10 @@ if TYPE_CHECKING:  # kornia's feature zoo loads only for LoFTR
 class Keypoints:
     """Keypoint positions (N, 2) in native pixels, descriptors (N, D) float32, sizes (N,) in native pixels,
     each keypoint's index in its image's full list (kept through `subset`), `fixed`: True where the
-    same keypoint sits at the same pixel in another frame of the camera (see `mark_fixed`), and, for
-    keypoints found on a virtual view, their positions in the view's pixels (`view_uv`, else None)."""
+    same keypoint sits at the same pixel in another frame of the camera (see `mark_fixed`), for
+    keypoints found on a virtual view, their positions in the view's pixels (`view_uv`, else None), and
+    what the camera's other frames say about it (`static_world.mark_static_evidence`): `moving` (no static
+    point moves so), `inv_range` (1/m, NaN when unknown) with its 1-sigma `inv_range_sigma`."""
 
     uv: np.ndarray
     desc: np.ndarray
@@ -29,6 +31,9 @@ class Keypoints:
     index: np.ndarray | None = None
     fixed: np.ndarray | None = None
     view_uv: np.ndarray | None = None
+    moving: np.ndarray | None = None
+    inv_range: np.ndarray | None = None
+    inv_range_sigma: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.size is None:
@@ -37,6 +42,12 @@ class Keypoints:
             self.index = np.arange(self.uv.shape[0])
         if self.fixed is None:
             self.fixed = np.zeros(self.uv.shape[0], dtype=bool)
+        if self.moving is None:
+            self.moving = np.zeros(self.uv.shape[0], dtype=bool)
+        if self.inv_range is None:
+            self.inv_range = np.full(self.uv.shape[0], np.nan)
+        if self.inv_range_sigma is None:
+            self.inv_range_sigma = np.full(self.uv.shape[0], np.inf)
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -44,7 +55,13 @@ class Keypoints:
     def subset(self, keep: np.ndarray) -> Keypoints:
         """The keypoints selected by a boolean mask or index array."""
         view_uv = None if self.view_uv is None else self.view_uv[keep]
-        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep], self.fixed[keep], view_uv)
+        return Keypoints(self.uv[keep], self.desc[keep], self.size[keep], self.index[keep], self.fixed[keep], view_uv,
+                         self.moving[keep], self.inv_range[keep], self.inv_range_sigma[keep])
+
+    @property
+    def across_time(self) -> np.ndarray:
+        """True where a keypoint may be matched across time: neither at one pixel (`fixed`) nor `moving`."""
+        return ~(self.fixed | self.moving)
 
 
 def mark_fixed(frames: list[Keypoints], radius_px: float = 1.0, min_cosine: float = 0.9) -> None:

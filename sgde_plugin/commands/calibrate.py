@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refine-focal", action=argparse.BooleanOptionalAction, default=None,
                         help="glc: estimate one focal-length scale per camera (prior 1 %%) and write the refined "
                              "intrinsics (default: AdjustConfig.refine_focal)")
+    parser.add_argument("--refine-keypoints", action=argparse.BooleanOptionalAction, default=None,
+                        help="sift: move each verified keypoint to the sub-pixel position where its patch aligns "
+                             "with its track's (calib/refine.py; default: MatchConfig.refine)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
@@ -84,7 +87,7 @@ def summary_rows(block: dict) -> list[dict]:
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate, write the rig atomically, print the per-pair table and the verdict."""
-    from ..calib import AcceptanceRules, AdjustConfig, calibrate, default_beta
+    from ..calib import AcceptanceRules, AdjustConfig, MatchConfig, calibrate, default_beta
     from ..io import atomic_write_text
     from ..readers.detect import load_rig
     from ..rig import write_rig_json
@@ -107,8 +110,9 @@ def run(args: argparse.Namespace) -> int:
     rules = AcceptanceRules(min_correspondences=beta, max_translation_change_m=args.alpha,
                             max_iterations=args.max_iterations)
     acfg = AdjustConfig() if args.refine_focal is None else AdjustConfig(refine_focal=args.refine_focal)
+    mcfg = MatchConfig() if args.refine_keypoints is None else MatchConfig(refine=args.refine_keypoints)
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
-                               loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg)
+                               loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg)
     write_rig_json(out_rig, args.out)
     if args.json:
         atomic_write_text(Path(args.json), json.dumps(block, indent=1) + "\n")

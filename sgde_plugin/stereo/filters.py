@@ -81,6 +81,13 @@ def photometric_scores(
     """
     map_x, map_y = shift_maps(disp, sign, x0)
     bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return window_scores(a, bw, valid, window, min_std)
+
+
+def window_scores(
+    a: np.ndarray, bw: np.ndarray, valid: np.ndarray, window: int = 7, min_std: float = 2.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`photometric_scores` of reference `a` against `bw`, the other image already warped onto it."""
     box = (window, window)
     e = a - bw
     offset = median(e[valid]) if valid.any() else 0.0

@@ -3,6 +3,8 @@
 `PriorBuilder(rig, config)` does all per-rig work once (`planning.plan_pairs`: rectified geometry,
 remap maps, backward maps); `.build(images, masks)` then turns one frame's images into one `PriorMap`
 per camera: prepare the images, match each pair (batched for a learned matcher), filter, back-project, fuse.
+With `matcher: planesweep` the pairs are not rectified: `planesweep.plan_sweeps` and `sweep_values` match
+them between the original views instead, and the fusion is the same.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from .checks import MatchedPair, check_pair
 from .config import PRIOR_ALGO_VERSION, PriorConfig
 from .filters import depth_edge_factor, normalize_image
 from .matchers import Matcher
+from .planesweep import SweepPlan, plan_sweeps, sweep_values
 from .planning import PairPlan, plan_pairs, same_pose
 from .rectify import torch_threads
 from .schedule import OnDemand, run_pairs
@@ -56,22 +59,27 @@ class PriorBuilder:
         self.config = config or PriorConfig()
         # pairs processed in parallel: OpenCV's thread count by default (1 in a single-threaded worker);
         # a learned matcher parallelises inside torch instead
-        default = cv2.getNumThreads() if self.config.matcher.name == "sgbm" else 1
+        default = cv2.getNumThreads() if self.config.matcher.name in ("sgbm", "planesweep") else 1
         self.threads = max(1, default if threads is None else int(threads))
-        self.matcher: Matcher = self.config.make_matcher()
+        self.matcher: Matcher | None = None if self.config.sweeps else self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
         self.last_warning: str | None = None  # set by build() when the frame's prior came out empty
         self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
+        self.plans: list[PairPlan] | list[SweepPlan] = self._plan(rig)
+
+    def _plan(self, rig: Rig) -> list[PairPlan] | list[SweepPlan]:
+        """The per-rig work: rectified pairs, or the plane sweep's views."""
+        if self.config.sweeps:
+            return plan_sweeps(rig, self.config)
         with torch_threads(1):
-            self.plans: list[PairPlan] = plan_pairs(rig, self.config)
+            return plan_pairs(rig, self.config)
 
     def _plan_for(self, rig: Rig) -> None:
         """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""
         if all(same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
             return
         self.rig = rig
-        with torch_threads(1):
-            self.plans = plan_pairs(rig, self.config)
+        self.plans = self._plan(rig)
 
     def _prepare(self, images: Mapping[str, np.ndarray], on_demand: bool = False) -> Mapping[str, np.ndarray]:
         """Check sizes and convert to the matching colour space (grey unless `color`); `on_demand`: check now,
@@ -148,13 +156,15 @@ class PriorBuilder:
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
     def _pair_values(
-        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None],
+        self, plan: PairPlan | SweepPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None],
         batched: Mapping[int, Any] | None = None,
     ) -> tuple[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], dict[str, float]]:
         """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side.
 
         `batched` maps id(plan) to (canvases, matcher answers, seconds) computed ahead."""
         cfg = self.config
+        if isinstance(plan, SweepPlan):
+            return sweep_values(plan, grey, masks, cfg)
         t0 = time.perf_counter()
         ahead = None if batched is None else batched.get(id(plan))
         if ahead is None:
@@ -205,7 +215,7 @@ class PriorBuilder:
         # pairs in parallel: each OpenCV call runs in its own pair's thread (no nested stripes, no spinning pool)
         # (the pool is left, i.e. every pair thread has ended, before OpenCV's count is restored)
         with opencv_threads(1 if parallel else cv2.getNumThreads()), ThreadPoolExecutor(self.threads) as pool:
-            costs = [p.pair.size[0] * p.pair.size[1] * p.pair.max_disparity for p in self.plans]
+            costs = [p.cost for p in self.plans]
             results, out = run_pairs(self.plans, lambda p: self._pair_values(p, grey, masks, batched), needs, fuse,
                                      pool if parallel else None, costs)
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
