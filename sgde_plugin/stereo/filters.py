@@ -91,7 +91,7 @@ def window_scores(
     box = (window, window)
     e = a - bw
     offset = median(e[valid]) if valid.any() else 0.0
-    e -= np.float32(offset)
+    e -= offset  # a Python float: taken in the array's precision, as `e - offset` was
     mad = cv2.blur(np.abs(e, out=e), box)
     ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
     va = cv2.blur(np.multiply(a, a, out=e), box)
