@@ -112,9 +112,13 @@ def _photometric(
     cfg = config
     t, mad_max = cfg.filters.min_zncc, cfg.filters.max_abs_diff
     ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
-    conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / mad_max, 0, 1)
+    # in place, the same operations in the same order as conf *= clip((ncc - t) / (1 - t)) * clip(1 - mad / mad_max)
+    zncc = np.clip(np.divide(np.subtract(ncc, t, out=ncc), 1 - t, out=ncc), 0, 1, out=ncc)
+    diff = np.clip(np.subtract(1, np.divide(mad, mad_max, out=mad), out=mad), 0, 1, out=mad)
+    conf *= np.multiply(zncc, diff, out=zncc)
     if cfg.filters.min_texture > 0:  # rows without x-structure are ambiguous
-        conf *= np.clip(texture / cfg.filters.min_texture - 1, 0, 1)
+        conf *= np.clip(np.subtract(np.divide(texture, cfg.filters.min_texture, out=texture), 1, out=texture), 0, 1,
+                        out=texture)
     conf *= disp / (disp + cfg.confidence.disparity_px)  # small disparities give uncertain depth
     if cfg.confidence.edge_jump_px > 0:
         conf *= discontinuity_factor(disp, conf > 0, cfg.confidence.edge_jump_px)

@@ -55,13 +55,15 @@ def refine_disparity(
         map_x, map_y = shift_maps(d, sign, x0)
         bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         j = sign * cv2.remap(db, np.floor(map_x), map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-        e = a - bw
+        e = np.subtract(a, bw, out=bw)
         mj, me = cv2.blur(j, box), cv2.blur(e, box)
-        num = cv2.blur(j * e, box) - mj * me
-        den = cv2.blur(j * j, box) - mj * mj
-        step = np.clip(num / np.maximum(den, 1e-3), -max_step, max_step)
-        ok = valid & (den > 1.0)
-        d[ok] += step[ok]
+        num = cv2.blur(np.multiply(j, e, out=e), box)
+        num -= np.multiply(mj, me, out=me)
+        den = cv2.blur(np.multiply(j, j, out=j), box)
+        den -= np.multiply(mj, mj, out=mj)
+        step = np.divide(num, np.maximum(den, 1e-3), out=num)
+        np.clip(step, -max_step, max_step, out=step)
+        np.add(d, step, out=d, where=valid & (den > 1.0))
     return np.where(valid, d, np.float32(0))
 
 
@@ -91,17 +93,34 @@ def window_scores(
     box = (window, window)
     e = a - bw
     if offset is None:
-        offset = float(np.median(e[valid])) if valid.any() else 0.0
-    mad = cv2.blur(np.abs(e - offset), box)
+        offset = median(e[valid]) if valid.any() else 0.0
+    e -= offset  # a Python float: taken in the array's precision, as `e - offset` was
+    mad = cv2.blur(np.abs(e, out=e), box)
     ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
-    va = cv2.blur(a * a, box) - ma * ma
-    vb = cv2.blur(bw * bw, box) - mb * mb
-    cov = cv2.blur(a * bw, box) - ma * mb
-    ncc = cov / np.sqrt(np.maximum(va * vb, 1e-6))
-    ncc[np.minimum(va, vb) < min_std**2] = -1.0
+    va = cv2.blur(np.multiply(a, a, out=e), box)
+    va -= ma * ma
+    vb = cv2.blur(np.multiply(bw, bw, out=e), box)
+    vb -= mb * mb
+    cov = cv2.blur(np.multiply(a, bw, out=e), box)
+    cov -= np.multiply(ma, mb, out=ma)
+    flat = np.minimum(va, vb) < min_std**2
+    prod = np.multiply(va, vb, out=va)
+    ncc = np.divide(cov, np.sqrt(np.maximum(prod, 1e-6, out=prod), out=prod), out=cov)
+    np.copyto(ncc, np.float32(-1.0), where=flat)
     gx = x_gradient(a)
-    texture = np.sqrt(cv2.blur(gx * gx, box))
+    texture = np.sqrt(cv2.blur(np.multiply(gx, gx, out=gx), box), out=vb)
     return ncc, mad, texture
+
+
+def median(values: np.ndarray) -> float:
+    """`np.median` of a non-empty 1-D float array without NaNs: the same value from one partition and no NaN pass
+    (for an even count the lower middle value is the largest of the lower half)."""
+    n = values.shape[0]
+    k = n // 2
+    part = np.partition(values, k)
+    if n % 2:
+        return float(part[k])
+    return float(np.mean(np.array([part[:k].max(), part[k]], values.dtype)))
 
 
 def lr_check(
@@ -112,18 +131,18 @@ def lr_check(
     Both maps cover the same columns. For a left reference (sign=-1) the match of column x is
     x - d; for a right reference (+1), x + d. The check passes when the other map, at the matched
     column, agrees within `max_diff` pixels; the confidence then falls off as a Gaussian of the
-    disagreement. Matches outside the other map fail.
+    disagreement. Matches outside the other map fail. The other map is read at the rounded column by a
+    nearest-neighbour remap (the columns are whole numbers, so it reads exactly that pixel; outside the
+    map its confidence reads 0).
     """
     h, w = disp_a.shape
     cols = np.arange(w, dtype=np.float32)[None, :]
-    x = np.rint(cols + disp_a if sign > 0 else cols - disp_a).astype(np.intp)
-    inside = (x >= 0) & (x < w)
-    flat = np.clip(x, 0, w - 1)
-    flat += np.arange(0, h * w, w)[:, None]  # flat index of the matched pixel, same row
-    other = disp_b.reshape(-1)[flat]
-    other_c = conf_b.reshape(-1)[flat]
+    x = np.rint(cols + disp_a if sign > 0 else cols - disp_a).astype(np.float32, copy=False)
+    rows = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    other, other_c = (cv2.remap(m, x, rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                      for m in (disp_b, conf_b))
     diff = np.abs(disp_a - other)
-    ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
+    ok = (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
     return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32, copy=False)
 
 
@@ -133,7 +152,7 @@ def remove_islands(disp: np.ndarray, conf: np.ndarray, min_area: int, max_step: 
         return
     d16 = np.where(conf > 0, np.rint(disp * 16), -16).astype(np.int16)
     cv2.filterSpeckles(d16, -16, int(min_area), int(round(max_step * 16)))
-    conf[d16 < 0] = 0
+    np.copyto(conf, np.float32(0), where=d16 < 0)
 
 
 NORMALIZATIONS = ("none", "gain", "local")
