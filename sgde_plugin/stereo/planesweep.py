@@ -336,36 +336,23 @@ def depth_maps(plan: SweepPlan, k: int, inv_depth: np.ndarray) -> tuple[np.ndarr
     return u.reshape(h, w).astype(np.float32), v.reshape(h, w).astype(np.float32)
 
 
-def _photometric_factor(ncc: np.ndarray, mad: np.ndarray, min_zncc: float, max_abs_diff: float) -> np.ndarray:
-    """`checks._photometric`'s factor: ZNCC above `min_zncc`, mean absolute difference below `max_abs_diff`."""
-    return np.clip((ncc - min_zncc) / (1 - min_zncc), 0, 1) * np.clip(1 - mad / max_abs_diff, 0, 1)
-
-
 def _photometric_confidence(plan: SweepPlan, k: int, views: list[tuple[np.ndarray, np.ndarray]],
-                            inv_depth: np.ndarray, plane: np.ndarray, ok: np.ndarray, config: PriorConfig
-                            ) -> np.ndarray:
-    """The rectified path's photometric confidence (`checks._photometric`) on each pixel's nearest plane
-    `plane`: windowed ZNCC above `min_zncc`, mean absolute difference below `max_abs_diff` (after the
-    cameras' brightness offset), x-texture above `min_texture`. The windows are compared as that plane
-    warps them (a window warped pixel by pixel with a noisy depth is scrambled) and as the refined depths warp
-    them pixel by pixel (a slanted surface fits no fronto-parallel plane): the better of the two counts."""
+                            inv_depth: np.ndarray, ok: np.ndarray, config: PriorConfig) -> np.ndarray:
+    """The rectified path's photometric confidence (`checks._photometric`) at the refined depth, the other
+    view warped pixel by pixel: windowed ZNCC above `min_zncc`, mean absolute difference (after the cameras'
+    brightness offset) below `max_abs_diff`, x-texture above `min_texture`."""
     side = (plan.left, plan.right)[k]
     f, window = config.filters, config.sweep.window
     a = np.ascontiguousarray(views[k][0][side.crop])
-    other = views[1 - k][0]
-    h, w = a.shape
-    # the brightness offset: median of the centre-pixel differences of the matches whose own ZNCC passed
     map_x, map_y = depth_maps(plan, k, inv_depth)
-    warped = cv2.remap(other, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    offset = float(np.median((a - warped)[ok])) if ok.any() else 0.0
+    warped = cv2.remap(views[1 - k][0], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # the brightness offset, from the matches that pass the ZNCC check (the rectified path takes it from its
+    # checked matches; the unchecked pixels of a sweep are mostly wrong and bias it by tens of grey levels)
+    ncc, _, _ = window_scores(a, warped, ok, window, _MIN_STD)
+    sure = ok & (ncc > f.min_zncc)
+    offset = float(np.median((a - warped)[sure])) if sure.any() else 0.0
     ncc, mad, texture = window_scores(a, warped, ok, window, _MIN_STD, offset)
-    conf = _photometric_factor(ncc, mad, f.min_zncc, f.max_abs_diff)
-    for p in np.unique(plane[ok]):  # the same on the winning plane's window; the better of the two counts
-        at = ok & (plane == p)
-        bw = cv2.warpPerspective(other, side.homographies[p], (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                 borderMode=cv2.BORDER_REPLICATE)
-        n, m, _ = window_scores(a, bw, at, window, _MIN_STD, offset)
-        conf[at] = np.maximum(conf[at], _photometric_factor(n[at], m[at], f.min_zncc, f.max_abs_diff))
+    conf = np.clip((ncc - f.min_zncc) / (1 - f.min_zncc), 0, 1) * np.clip(1 - mad / f.max_abs_diff, 0, 1)
     if f.min_texture > 0:  # rows without x-structure are ambiguous
         conf *= np.clip(texture / f.min_texture - 1, 0, 1)
     return conf
@@ -397,8 +384,7 @@ def _sweep_reference(plan: SweepPlan, k: int, views: list[tuple[np.ndarray, np.n
     ok = side.reach & ref_valid[side.crop] & unique & (raw < _INVALID) & (best < len(inv) - 1)
     ok &= va >= _MIN_STD**2
     ok &= np.isfinite(disp) & (1.0 - raw > config.filters.min_zncc)  # the winner's own ZNCC passes the check
-    plane = np.clip(np.rint(best + offset), 0, len(inv) - 1).astype(np.intp)
-    conf = _photometric_confidence(plan, k, views, np.where(ok, q, 0.0), plane, ok, config)
+    conf = _photometric_confidence(plan, k, views, np.where(ok, q, 0.0), ok, config)
     conf *= disp / (disp + config.confidence.disparity_px)  # small disparities give uncertain depth
     if side.min_disparity is not None:
         ok &= disp >= side.min_disparity
