@@ -27,7 +27,8 @@ CHANGED = {
     "min_region_px": 100, "color": False, "margin_px": 4, "max_azimuth_deg": 70.0, "max_elevation_deg": 40.0,
     "fisheye": "virtual", "confidence_disparity_px": 4.0, "edge_jump_px": 2.0, "normalize": "local", "antialias": True,
     "min_confidence": 0.3, "edge_depth_ratio": 0.2, "edge_window_px": 9,
-    "normalize_sigma": 6.0, "ground_depth_ratio": 2.0,
+    "normalize_sigma": 6.0, "ground_depth_ratio": 2.0, "sweep_planes": 64, "sweep_step_px": 1.5, "sweep_window": 5,
+    "sweep_paths": 2, "sweep_p1": 0.1, "sweep_p2": 0.5, "sweep_uniqueness": 0.1,
 }
 
 
@@ -161,9 +162,10 @@ def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_p
 
 # config-document digests: the nesting by concern was checked against the flat fields of commit 68affc8; they
 # were re-pinned when issue #16 added edge_depth_ratio and edge_window_px, and again when it added
-# ground_depth_ratio (a new setting changes every document). The grouping must not change any cache's fingerprint
-PINNED = {"defaults": "1ee29d4712861c30bb5f", "synthetic": "1ee29d4712861c30bb5f", "nuscenes": "db257e7f5f1e6e1b6768",
-          "ddad": "ac269c5b93831f7ffd25", "fisheye": "0bc81e8c262afca46efb", "changed": "0583fab708f69dd4675c"}
+# ground_depth_ratio (a new setting changes every document), and when it added the plane sweep's `sweep_*`.
+# The grouping must not change any cache's fingerprint
+PINNED = {"defaults": "558b6f0ee0aee3b18ab1", "synthetic": "558b6f0ee0aee3b18ab1", "nuscenes": "8366929b3185625432e8",
+          "ddad": "78a08994258497b43b67", "fisheye": "26d23a4691259ad8bb1b", "changed": "4cba36597dd1ad4ac249"}
 
 
 def test_fingerprints_are_those_of_the_flat_config():

@@ -38,13 +38,13 @@ def test_ground_disparity_by_hand():
     pose[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera x right, y down, z forward (ego x)
     pose[2, 3] = 1.5
     rect = Camera("level", Pinhole(pair.rect_left.width, 60, K, None), pose)
-    got = ground_disparity(pair, rect, 2.0)
+    got = ground_disparity(rect, pair.baseline_m, pair.core_x, 2.0)
     x0, x1 = pair.core_x
     assert got.shape == (60, x1 - x0)
     expected = np.maximum(pair.baseline_m * (np.arange(60) - 20.0) / (2.0 * 1.5), 0)
     np.testing.assert_allclose(got, np.repeat(expected[:, None], x1 - x0, axis=1), rtol=1e-6, atol=1e-6)
     below = Camera("below", rect.intrinsics, np.eye(4))  # centre at ego z = 0: the rule cannot hold
-    assert ground_disparity(pair, below, 2.0) is None
+    assert ground_disparity(below, pair.baseline_m, pair.core_x, 2.0) is None
 
 
 def test_ground_rule_leaves_a_correct_prior_alone():

@@ -58,6 +58,19 @@ def test_match_box_holds_every_match_and_its_halo():
     assert checks.match_box(np.zeros((4, 4))) is None
 
 
+def test_hull_of_the_two_boxes_is_the_box_of_both():
+    """check_pair takes the left-right check's box as the hull of the two references' boxes: the same box as
+    match_box over both maps, halo and clipping included, on random sparse maps (and an empty side)."""
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        h, w = rng.integers(5, 40, 2)
+        conf_l, conf_r = ((rng.random((h, w)) > rng.uniform(0.9, 1.0)) * rng.random((h, w)) for _ in range(2))
+        if rng.random() < 0.2:
+            conf_r[:] = 0
+        assert checks.hull(checks.match_box(conf_l), checks.match_box(conf_r)) == checks.match_box(conf_l, conf_r)
+    assert checks.hull(None, None) is None
+
+
 @pytest.mark.parametrize(("scene", "edge"), [(pinhole_scene, True), (fisheye_scene, False)])
 def test_warp_is_zero_outside_the_valid_canvas_without_a_mask_pass(scene, edge):
     """`edge`: the canvas has pixels its camera does not see (the fisheyes see all of theirs)."""
@@ -198,3 +211,87 @@ def test_warp_on_the_box_of_the_valid_canvas_equals_a_whole_canvas_remap():
                 ref = cv2.remap(image, full1, full2, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
                 assert np.array_equal(maps.warp(image, interp), ref)
     assert cropped >= 2  # the rectified canvases are cut, not just the trivial whole box
+
+
+def _pair_patch(seed: int = 0, h: int = 60, w: int = 90, pad: int = 24):
+    """A textured reference box `a` (float32 grey) and the other canvas `b`: b shifted by a smooth disparity."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    b = cv2.GaussianBlur(rng.random((h, w + 2 * pad), np.float32) * 255, (0, 0), 1.2)
+    yy, xx = np.mgrid[0:h, 0:w]
+    disp = (6 + 0.04 * xx + 0.02 * yy + rng.normal(0, 0.3, (h, w))).astype(np.float32)
+    x0 = pad
+    map_x = (np.arange(x0, x0 + w, dtype=np.float32)[None, :] - disp).astype(np.float32)
+    map_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    a = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) + rng.normal(0, 2, (h, w))
+    valid = rng.random((h, w)) > 0.2
+    return a.astype(np.float32), b, np.rint(disp * 16) / 16, valid, x0
+
+
+def test_refinement_and_photometric_scores_equal_the_straightforward_computation():
+    """In-place arithmetic changes no value: both functions equal the plain
+    (allocating) formulas bit for bit, on a textured pair with a slanted, noisy disparity."""
+    import cv2
+
+    from sgde_plugin.stereo import filters
+
+    for seed in range(3):
+        a, b, disp, valid, x0 = _pair_patch(seed)
+        # refinement, straightforward
+        db = np.zeros_like(b)
+        db[:, :-1] = b[:, 1:] - b[:, :-1]
+        d = disp.copy()
+        map_x, map_y = filters.shift_maps(d, -1, x0)
+        bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        j = -1 * cv2.remap(db, np.floor(map_x), map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+        e = a - bw
+        mj, me = cv2.blur(j, (5, 5)), cv2.blur(e, (5, 5))
+        num = cv2.blur(j * e, (5, 5)) - mj * me
+        den = cv2.blur(j * j, (5, 5)) - mj * mj
+        step = np.clip(num / np.maximum(den, 1e-3), -0.5, 0.5)
+        ok = valid & (den > 1.0)
+        d[ok] += step[ok]
+        ref = np.where(valid, d, np.float32(0))
+        out = filters.refine_disparity(a, b, disp, valid, -1, x0)
+        assert np.array_equal(out, ref) and np.abs(out - disp)[valid].max() > 0.05  # it did refine
+        # photometric scores, straightforward
+        bw = cv2.remap(b, *filters.shift_maps(out, -1, x0), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        e = a - bw
+        mad = cv2.blur(np.abs(e - float(np.median(e[valid]))), (7, 7))
+        ma, mb = cv2.blur(a, (7, 7)), cv2.blur(bw, (7, 7))
+        va, vb = cv2.blur(a * a, (7, 7)) - ma * ma, cv2.blur(bw * bw, (7, 7)) - mb * mb
+        ncc = (cv2.blur(a * bw, (7, 7)) - ma * mb) / np.sqrt(np.maximum(va * vb, 1e-6))
+        ncc[np.minimum(va, vb) < 4.0] = -1.0
+        gx = filters.x_gradient(a)
+        texture = np.sqrt(cv2.blur(gx * gx, (7, 7)))
+        got = filters.photometric_scores(a, b, out, valid, -1, x0)
+        for x, y in zip(got, (ncc, mad, texture)):
+            assert x.dtype == np.float32 and np.array_equal(x, y)
+        assert np.median(got[0][valid]) > 0.6  # the refined match is good (2 grey levels of noise)
+
+
+def test_left_right_check_by_nearest_remap_equals_the_gather():
+    """The other map is read by a nearest-neighbour remap at the rounded column: the same as the flat-index
+    gather it replaced, with matches outside the map (both sides) failing, on random maps and views."""
+    from sgde_plugin.stereo.filters import lr_check
+
+    rng = np.random.default_rng(5)
+    h, w = 40, 70
+    for sign in (-1, 1):
+        field = 10 + 0.02 * np.arange(w + 6)[None, :] + rng.normal(0, 0.6, (h, w + 6))
+        disp_a = field.astype(np.float32)[:, 3:-3]  # a view, as check_pair passes
+        disp_b = (field[:, 3:-3] + rng.normal(0, 0.6, (h, w))).astype(np.float32)[:, ::-1][:, ::-1]
+        conf_a = (rng.random((h, w)) > 0.3).astype(np.float32) * 0.9
+        conf_b = (rng.random((h, w)) > 0.3).astype(np.float32) * 0.7
+        cols = np.arange(w, dtype=np.float32)[None, :]
+        x = np.rint(cols + disp_a if sign > 0 else cols - disp_a).astype(np.intp)
+        inside = (x >= 0) & (x < w)
+        flat = np.clip(x, 0, w - 1) + np.arange(0, h * w, w)[:, None]
+        other, other_c = disp_b.reshape(-1)[flat], conf_b.reshape(-1)[flat]
+        diff = np.abs(disp_a - other)
+        ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= 1.0)
+        ref = np.where(ok, conf_a * np.exp(-0.5 * diff**2), 0).astype(np.float32)
+        out = lr_check(disp_a, conf_a, disp_b, conf_b, sign, 1.0)
+        assert (~inside & (conf_a > 0)).sum() > 50 and ok.sum() > 200
+        assert out.dtype == np.float32 and np.array_equal(out, ref)

@@ -85,8 +85,7 @@ def evaluate_source(rig: Rig, rig_overlap: Rig, images: dict, gts: dict, masks: 
         breakdown.add(depth, confidence, {c: _masked(g, masks.get(c)) for c, g in gts[fid].items()}, max_depth)
         build, score = build + t2 - t1, score + time.perf_counter() - t2
     report = evaluator.result()
-    fb = {f"{p.pair.left.name}|{p.pair.right.name}": float(p.pair.rect_left.intrinsics.K[0, 0] * p.pair.baseline_m)
-          for p in builder.plans}
+    fb = {p.name: p.focal_baseline for p in builder.plans}
     report["breakdown"] = breakdown.result(evaluator.pair_samples(), fb)
     report["seconds"] = {"setup": round(setup, 2), "prior_per_frame": round(build / max(1, len(images)), 2),
                          "eval_per_frame": round(score / max(1, len(images)), 2)}

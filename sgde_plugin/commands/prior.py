@@ -19,7 +19,8 @@ HELP = "compute the stereo depth prior of every frame into a zarr prior cache (r
 # Every PriorConfig setting (flat name, stereo.config.SETTINGS) as an option (tests check that none is missing).
 # Defaults are None here: an option given on the command line wins over --config, which wins over --preset.
 SETTING_OPTIONS: list[tuple[str, str, str]] = [
-    ("matcher", "str", "sgbm (default), raft-stereo (official checkpoint + the RAFT-Stereo checkout on PYTHONPATH), "
+    ("matcher", "str", "sgbm (default), planesweep (plane sweep between the original views, no rectification), "
+     "raft-stereo (official checkpoint + the RAFT-Stereo checkout on PYTHONPATH), "
      "torch (TorchScript, or state dict with --matcher-arch) or onnx"),
     ("matcher_path", "str", "learned matcher file: raftstereo-*.pth, TorchScript / state dict, or ONNX"),
     ("matcher_arch", "str", "pkg.module:factory building the module of a torch state dict"),
@@ -38,6 +39,13 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("uniqueness", "int", "SGBM uniqueness ratio, percent (15)"),
     ("speckle_window", "int", "SGBM speckle window, pixels (100)"),
     ("speckle_range", "int", "SGBM speckle range, disparity steps (2)"),
+    ("sweep_planes", "int", "planesweep: most depth planes, uniform in inverse depth (256)"),
+    ("sweep_step_px", "float", "planesweep: parallax between neighbouring planes, pixels (1)"),
+    ("sweep_window", "int", "planesweep: ZNCC window, odd (7)"),
+    ("sweep_paths", "int", "planesweep: semi-global aggregation paths, 0 (window only), 2 or 4 (4)"),
+    ("sweep_p1", "float", "planesweep: penalty of a one-plane step, 1 - ZNCC units (0.05)"),
+    ("sweep_p2", "float", "planesweep: penalty of a larger step (0.3)"),
+    ("sweep_uniqueness", "float", "planesweep: second-best cost must exceed (1 + this) x the best (0.05)"),
     ("lr_max_diff", "float", "left-right consistency, rectified pixels (1)"),
     ("border_px", "int", "matches this close to an image border are dropped (2)"),
     ("refine_iterations", "int", "sub-pixel refinement steps, 0 = off (SGBM 1, learned 0)"),

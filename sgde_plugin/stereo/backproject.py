@@ -77,8 +77,8 @@ class BackProjection:
         only sample the sentinel; where they are the majority they are skipped, the others remapped
         exactly as they are.
         """
-        d = np.where(confidence > 0, disparity, _SENTINEL).astype(np.float32)
         ok = confidence > 0
+        d = np.where(ok, disparity, np.float32(_SENTINEL)).astype(np.float32, copy=False)
         jump_x = ok[:, 1:] & ok[:, :-1] & (np.abs(d[:, 1:] - d[:, :-1]) > edge_px)
         jump_y = ok[1:] & ok[:-1] & (np.abs(d[1:] - d[:-1]) > edge_px)
         edge = np.zeros_like(ok)
@@ -121,8 +121,7 @@ class BackProjection:
             z = self.kfb / d
         # kfb > 0: a sample without a value (d <= 0) gives z <= 0 or -inf, outside any range with min_depth > 0
         ok = (z >= min_depth) & (z <= max_depth) if min_depth > 0 else (d > 0) & (z >= min_depth) & (z <= max_depth)
-        sel = np.flatnonzero(ok)
-        return self.index[sel], z[sel], c_all[sel]
+        return self.index[ok], z[ok], c_all[: self.count][ok]
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float

@@ -54,6 +54,15 @@ def match_box(*confs: np.ndarray, halo: int = HALO) -> tuple[slice, slice] | Non
             slice(max(0, cols[0] - halo), min(w, cols[-1] + 1 + halo)))
 
 
+def hull(*boxes: tuple[slice, slice] | None) -> tuple[slice, slice] | None:
+    """The smallest box holding every box given (`match_box` boxes; None = empty); None if all are empty."""
+    given = [b for b in boxes if b is not None]
+    if not given:
+        return None
+    return (slice(min(b[0].start for b in given), max(b[0].stop for b in given)),
+            slice(min(b[1].start for b in given), max(b[1].stop for b in given)))
+
+
 def check_pair(m: MatchedPair, config: PriorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Refined and checked (disp_l, conf_l, disp_r, conf_r) over the core columns; confidence 0 = rejected.
 
@@ -63,7 +72,7 @@ def check_pair(m: MatchedPair, config: PriorConfig) -> tuple[np.ndarray, np.ndar
     """
     cfg = config
     boxes = (match_box(m.conf_l), match_box(m.conf_r))
-    both = match_box(m.conf_l, m.conf_r)
+    both = hull(*boxes)  # = match_box(m.conf_l, m.conf_r): the box of a union holds the boxes of its parts
     if both is None:
         return m.disp_l.copy(), np.zeros_like(m.conf_l), m.disp_r.copy(), np.zeros_like(m.conf_r)
     rows = both[0]  # the canvases' rows that any box needs, as float32 grey
@@ -121,4 +130,4 @@ def _photometric(
     remove_islands(disp, conf, cfg.filters.min_region_px)  # isolated islands are mostly wrong matches
 
 
-__all__ = ["HALO", "MatchedPair", "check_pair", "match_box"]
+__all__ = ["HALO", "MatchedPair", "check_pair", "hull", "match_box"]

@@ -23,8 +23,10 @@ PRIOR_ALGO_VERSION = "1"
 # the value of one setting
 Setting = Union[str, int, float, bool, dict[str, Any], None]  # noqa: UP007 - a runtime alias on Python 3.10
 
-MATCHERS = ("sgbm", "raft-stereo", "torch", "onnx")
-LEARNED_MATCHERS = MATCHERS[1:]
+MATCHERS = ("sgbm", "planesweep", "raft-stereo", "torch", "onnx")
+LEARNED_MATCHERS = MATCHERS[2:]
+# matchers of the original views (no rectified pair): `stereo.planesweep`
+SWEEP_MATCHERS = ("planesweep",)
 FISHEYE_PATHS = ("direct", "virtual")
 DEVICES = ("cpu", "cuda")
 # settings that change how a prior is computed, not what it is (device, batching): not fingerprinted
@@ -41,7 +43,8 @@ MATCHER_DEFAULTS: dict[str, tuple[bool | int | float, bool | int | float]] = {
 class MatcherSettings:
     """Which matcher computes the disparities, and how a learned one is loaded and run."""
 
-    name: str = "sgbm"  # "sgbm"; learned: "raft-stereo" (official checkpoint), "torch", "onnx"
+    name: str = "sgbm"  # "sgbm"; "planesweep" (original views, `sweep` settings);
+    #                     learned: "raft-stereo" (official checkpoint), "torch", "onnx"
     path: str | None = None  # learned matchers: checkpoint / TorchScript / ONNX file
     arch: str | None = None  # "pkg.module:factory" building the module of a torch state dict
     options: dict[str, Any] = field(default_factory=dict)  # factory keywords / RAFT-Stereo args
@@ -68,6 +71,19 @@ class SGBMSettings:
     uniqueness: int = 15
     speckle_window: int = 100
     speckle_range: int = 2
+
+
+@dataclass(frozen=True)
+class SweepSettings:
+    """The plane sweep between the original views (`matcher: planesweep`, `stereo.planesweep`)."""
+
+    planes: int = 256  # most depth planes (uniform in inverse depth); fewer when the parallax range is smaller
+    step_px: float = 1.0  # parallax between neighbouring planes, view pixels (f B x the inverse-depth step)
+    window: int = 7  # ZNCC window, odd
+    paths: int = 4  # semi-global aggregation: 0 (the ZNCC window alone), 2 (along rows) or 4 (rows and columns)
+    p1: float = 0.05  # penalty of a one-plane step between neighbours, in 1 - ZNCC units
+    p2: float = 0.3  # penalty of a larger step
+    uniqueness: float = 0.05  # the best cost beyond the winner's neighbours must exceed (1 + this) x the winner's
 
 
 @dataclass(frozen=True)
@@ -122,7 +138,8 @@ class ConfidenceSettings:
 
 
 GROUPS: dict[str, type] = {
-    "matcher": MatcherSettings, "sgbm": SGBMSettings, "geometry": GeometrySettings, "images": ImageSettings,
+    "matcher": MatcherSettings, "sgbm": SGBMSettings, "sweep": SweepSettings, "geometry": GeometrySettings,
+    "images": ImageSettings,
     "filters": FilterSettings, "confidence": ConfidenceSettings,
 }
 # flat names that are not the group field's own name (the matcher group's are "matcher_<field>")
@@ -130,9 +147,12 @@ _FLAT_NAMES = {("matcher", "name"): "matcher", ("matcher", "device"): "device",
                ("confidence", "disparity_px"): "confidence_disparity_px"}
 
 
+_PREFIXED = ("matcher", "sweep")  # groups whose flat names are "<group>_<field>"
+
+
 def _flat_name(group: str, name: str) -> str:
     """The flat setting name of a group field."""
-    return _FLAT_NAMES.get((group, name), f"matcher_{name}" if group == "matcher" else name)
+    return _FLAT_NAMES.get((group, name), f"{group}_{name}" if group in _PREFIXED else name)
 
 
 # flat setting name -> (group, field), in the groups' order
@@ -184,6 +204,7 @@ class PriorConfig:
 
     matcher: MatcherSettings = field(default_factory=MatcherSettings)
     sgbm: SGBMSettings = field(default_factory=SGBMSettings)
+    sweep: SweepSettings = field(default_factory=SweepSettings)
     geometry: GeometrySettings = field(default_factory=GeometrySettings)
     images: ImageSettings = field(default_factory=ImageSettings)
     filters: FilterSettings = field(default_factory=FilterSettings)
@@ -197,6 +218,7 @@ class PriorConfig:
             raise InputError(None, "matcher", f"unknown matcher {self.matcher.name!r} (expected {', '.join(MATCHERS)})")
         self._resolve_defaults()
         self._check()
+        self._check_sweep()
 
     @classmethod
     def from_settings(cls, values: Mapping[str, Any] | None = None, /, **more: Setting) -> PriorConfig:
@@ -261,6 +283,26 @@ class PriorConfig:
         """True for a learned matcher (anything but SGBM)."""
         return self.matcher.learned
 
+    def _check_sweep(self) -> None:
+        """`_check` for the plane sweep's settings."""
+        sw = self.sweep
+        if sw.window < 3 or sw.window % 2 == 0:
+            raise InputError(None, "sweep_window", "must be odd and at least 3")
+        if sw.paths not in (0, 2, 4):
+            raise InputError(None, "sweep_paths", "expected 0, 2 or 4")
+        if sw.planes < 4:
+            raise InputError(None, "sweep_planes", "must be at least 4")
+        if not sw.step_px > 0:
+            raise InputError(None, "sweep_step_px", "must be positive")
+        for name in ("sweep_p1", "sweep_p2", "sweep_uniqueness"):
+            if self.get(name) < 0:
+                raise InputError(None, name, "must not be negative")
+
+    @property
+    def sweeps(self) -> bool:
+        """True when pairs are matched by the plane sweep between the original views (no rectification)."""
+        return self.matcher.name in SWEEP_MATCHERS
+
     def get(self, name: str) -> Setting:
         """The value of one flat setting, e.g. `config.get("block_size")`."""
         group, leaf = SETTINGS[name]
@@ -290,8 +332,10 @@ class PriorConfig:
         return d
 
     def make_matcher(self) -> Matcher:
-        """The configured matcher."""
+        """The configured matcher of rectified pairs (the plane sweep has none: `stereo.planesweep` runs it)."""
         m, s = self.matcher, self.sgbm
+        if self.sweeps:
+            raise ValueError("the plane sweep matches the original views, not rectified pairs: PriorBuilder runs it")
         if m.name == "sgbm":
             return SGBMMatcher(
                 block_size=s.block_size, p1=s.p1, p2=s.p2, uniqueness=s.uniqueness,
@@ -306,5 +350,5 @@ class PriorConfig:
 __all__ = [
     "GROUPS", "LEARNED_MATCHERS", "MATCHERS", "MATCHER_DEFAULTS", "PRIOR_ALGO_VERSION", "RUNTIME_FIELDS", "SETTINGS",
     "ConfidenceSettings", "FilterSettings", "GeometrySettings", "ImageSettings", "MatcherSettings", "PriorConfig",
-    "SGBMSettings", "flatten_settings", "setting_type",
+    "SGBMSettings", "SWEEP_MATCHERS", "SweepSettings", "flatten_settings", "setting_type",
 ]

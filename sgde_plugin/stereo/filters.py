@@ -55,13 +55,15 @@ def refine_disparity(
         map_x, map_y = shift_maps(d, sign, x0)
         bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         j = sign * cv2.remap(db, np.floor(map_x), map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-        e = a - bw
+        e = np.subtract(a, bw, out=bw)
         mj, me = cv2.blur(j, box), cv2.blur(e, box)
-        num = cv2.blur(j * e, box) - mj * me
-        den = cv2.blur(j * j, box) - mj * mj
-        step = np.clip(num / np.maximum(den, 1e-3), -max_step, max_step)
-        ok = valid & (den > 1.0)
-        d[ok] += step[ok]
+        num = cv2.blur(np.multiply(j, e, out=e), box)
+        num -= np.multiply(mj, me, out=me)
+        den = cv2.blur(np.multiply(j, j, out=j), box)
+        den -= np.multiply(mj, mj, out=mj)
+        step = np.divide(num, np.maximum(den, 1e-3), out=num)
+        np.clip(step, -max_step, max_step, out=step)
+        np.add(d, step, out=d, where=valid & (den > 1.0))
     return np.where(valid, d, np.float32(0))
 
 
@@ -79,6 +81,13 @@ def photometric_scores(
     """
     map_x, map_y = shift_maps(disp, sign, x0)
     bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return window_scores(a, bw, valid, window, min_std)
+
+
+def window_scores(
+    a: np.ndarray, bw: np.ndarray, valid: np.ndarray, window: int = 7, min_std: float = 2.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`photometric_scores` of reference `a` against `bw`, the other image already warped onto it."""
     box = (window, window)
     e = a - bw
     offset = float(np.median(e[valid])) if valid.any() else 0.0
@@ -102,18 +111,18 @@ def lr_check(
     Both maps cover the same columns. For a left reference (sign=-1) the match of column x is
     x - d; for a right reference (+1), x + d. The check passes when the other map, at the matched
     column, agrees within `max_diff` pixels; the confidence then falls off as a Gaussian of the
-    disagreement. Matches outside the other map fail.
+    disagreement. Matches outside the other map fail. The other map is read at the rounded column by a
+    nearest-neighbour remap (the columns are whole numbers, so it reads exactly that pixel; outside the
+    map its confidence reads 0).
     """
     h, w = disp_a.shape
     cols = np.arange(w, dtype=np.float32)[None, :]
-    x = np.rint(cols + disp_a if sign > 0 else cols - disp_a).astype(np.intp)
-    inside = (x >= 0) & (x < w)
-    flat = np.clip(x, 0, w - 1)
-    flat += np.arange(0, h * w, w)[:, None]  # flat index of the matched pixel, same row
-    other = disp_b.reshape(-1)[flat]
-    other_c = conf_b.reshape(-1)[flat]
+    x = np.rint(cols + disp_a if sign > 0 else cols - disp_a).astype(np.float32, copy=False)
+    rows = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+    other, other_c = (cv2.remap(m, x, rows, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                      for m in (disp_b, conf_b))
     diff = np.abs(disp_a - other)
-    ok = inside & (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
+    ok = (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
     return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32, copy=False)
 
 

@@ -3,6 +3,8 @@
 `PriorBuilder(rig, config)` does all per-rig work once (`planning.plan_pairs`: rectified geometry,
 remap maps, backward maps); `.build(images, masks)` then turns one frame's images into one `PriorMap`
 per camera: prepare the images, match each pair (batched for a learned matcher), filter, back-project, fuse.
+With `matcher: planesweep` the pairs are not rectified: `planesweep.plan_sweeps` and `sweep_values` match
+them between the original views instead, and the fusion is the same.
 """
 
 from __future__ import annotations
@@ -24,9 +26,10 @@ from .checks import MatchedPair, check_pair
 from .config import PRIOR_ALGO_VERSION, PriorConfig
 from .filters import depth_edge_factor, normalize_image
 from .matchers import Matcher
+from .planesweep import SweepPlan, plan_sweeps, sweep_values
 from .planning import PairPlan, plan_pairs, same_pose
 from .rectify import torch_threads
-from .schedule import run_pairs
+from .schedule import OnDemand, run_pairs
 
 
 @dataclass
@@ -56,45 +59,59 @@ class PriorBuilder:
         self.config = config or PriorConfig()
         # pairs processed in parallel: OpenCV's thread count by default (1 in a single-threaded worker);
         # a learned matcher parallelises inside torch instead
-        default = cv2.getNumThreads() if self.config.matcher.name == "sgbm" else 1
+        default = cv2.getNumThreads() if self.config.matcher.name in ("sgbm", "planesweep") else 1
         self.threads = max(1, default if threads is None else int(threads))
-        self.matcher: Matcher = self.config.make_matcher()
+        self.matcher: Matcher | None = None if self.config.sweeps else self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
         self.last_warning: str | None = None  # set by build() when the frame's prior came out empty
         self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
+        self.plans: list[PairPlan] | list[SweepPlan] = self._plan(rig)
+
+    def _plan(self, rig: Rig) -> list[PairPlan] | list[SweepPlan]:
+        """The per-rig work: rectified pairs, or the plane sweep's views."""
+        if self.config.sweeps:
+            return plan_sweeps(rig, self.config)
         with torch_threads(1):
-            self.plans: list[PairPlan] = plan_pairs(rig, self.config)
+            return plan_pairs(rig, self.config)
 
     def _plan_for(self, rig: Rig) -> None:
         """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""
         if all(same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
             return
         self.rig = rig
-        with torch_threads(1):
-            self.plans = plan_pairs(rig, self.config)
+        self.plans = self._plan(rig)
 
-    def _prepare(self, images: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Check sizes and convert to the matching colour space (grey unless `color`)."""
-        out = {}
-        used = {s.camera for p in self.plans for s in (p.left, p.right)}
-        for name in used:
-            if name not in images:
-                raise InputError(None, f"images[{name}]", "missing")
-            img = np.asarray(images[name])
-            cam = self.rig.camera(name)
-            if img.shape[:2] != (cam.height, cam.width):
-                raise InputError(
-                    None, f"images[{name}]", f"is {img.shape[1]}x{img.shape[0]}, camera is {cam.width}x{cam.height}"
-                )
-            if img.dtype != np.uint8:
-                raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
-            if not self.config.images.color and img.ndim == 3:
-                img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-            if self.config.images.antialias and self.config.geometry.scale < 1:
-                # the canvas samples the image about every 1/scale pixels: low-pass it first (no aliasing)
-                img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.geometry.scale**-2 - 1)))
-            out[name] = img
-        return out
+    def _prepare(self, images: Mapping[str, np.ndarray], on_demand: bool = False) -> Mapping[str, np.ndarray]:
+        """Check sizes and convert to the matching colour space (grey unless `color`); `on_demand`: check now,
+        convert each camera in the (pair) thread that first needs it."""
+        used = sorted({s.camera for p in self.plans for s in (p.left, p.right)})
+        checked = {name: self._checked(images, name) for name in used}
+        if on_demand:
+            return OnDemand(used, lambda name: self._matching_image(checked[name]))
+        return {name: self._matching_image(img) for name, img in checked.items()}
+
+    def _checked(self, images: Mapping[str, np.ndarray], name: str) -> np.ndarray:
+        """`images[name]` as an array, or InputError when it is missing, of the wrong size or not uint8."""
+        if name not in images:
+            raise InputError(None, f"images[{name}]", "missing")
+        img = np.asarray(images[name])
+        cam = self.rig.camera(name)
+        if img.shape[:2] != (cam.height, cam.width):
+            raise InputError(
+                None, f"images[{name}]", f"is {img.shape[1]}x{img.shape[0]}, camera is {cam.width}x{cam.height}"
+            )
+        if img.dtype != np.uint8:
+            raise InputError(None, f"images[{name}]", f"must be uint8, got {img.dtype}")
+        return img
+
+    def _matching_image(self, img: np.ndarray) -> np.ndarray:
+        """A checked camera image in the matching colour space, low-passed if `antialias`."""
+        if not self.config.images.color and img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        if self.config.images.antialias and self.config.geometry.scale < 1:
+            # the canvas samples the image about every 1/scale pixels: low-pass it first (no aliasing)
+            img = cv2.GaussianBlur(img, (0, 0), 0.5 * float(np.sqrt(self.config.geometry.scale**-2 - 1)))
+        return img
 
     @staticmethod
     def matcher_inputs(plan: PairPlan, left: np.ndarray, right: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -139,13 +156,15 @@ class PriorBuilder:
         return disp_l, conf_l2, disp_r, conf_r2, t_match
 
     def _pair_values(
-        self, plan: PairPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None],
+        self, plan: PairPlan | SweepPlan, grey: Mapping[str, np.ndarray], masks: Mapping[str, np.ndarray | None],
         batched: Mapping[int, Any] | None = None,
     ) -> tuple[list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], dict[str, float]]:
         """One pair: warp, match, filter, back-project; (camera, flat index, depth, confidence) per side.
 
         `batched` maps id(plan) to (canvases, matcher answers, seconds) computed ahead."""
         cfg = self.config
+        if isinstance(plan, SweepPlan):
+            return sweep_values(plan, grey, masks, cfg)
         t0 = time.perf_counter()
         ahead = None if batched is None else batched.get(id(plan))
         if ahead is None:
@@ -179,28 +198,28 @@ class PriorBuilder:
         if frame is not None:
             self._plan_for(self._base_rig.as_captured(frame))
         masks = self._masks(masks)
-        grey = self._prepare(images)
+        parallel = self.threads > 1 and len(self.plans) > 1
+        grey = self._prepare(images, on_demand=parallel)  # in parallel: converted in the pair threads
         batched = self._match_batched(grey, masks)
         needs = {c: [i for i, p in enumerate(self.plans) if c in (p.left.camera, p.right.camera)]
                  for c in self.rig.camera_names}
-        fuse_s = [0.0]
+        fuse_s: list[float] = []
 
         def fuse(camera: str, pair_results: list[tuple[list[Any], dict[str, float]]]) -> PriorMap:
             t0 = time.perf_counter()
             values = [(index, z, c) for vals, _ in pair_results for cam, index, z, c in vals if cam == camera]
             prior = self._fuse_camera(camera, values, masks.get(camera))
-            fuse_s[0] += time.perf_counter() - t0
+            fuse_s.append(time.perf_counter() - t0)
             return prior
 
-        parallel = self.threads > 1 and len(self.plans) > 1
         # pairs in parallel: each OpenCV call runs in its own pair's thread (no nested stripes, no spinning pool)
         # (the pool is left, i.e. every pair thread has ended, before OpenCV's count is restored)
         with opencv_threads(1 if parallel else cv2.getNumThreads()), ThreadPoolExecutor(self.threads) as pool:
-            costs = [p.pair.size[0] * p.pair.size[1] * p.pair.max_disparity for p in self.plans]
+            costs = [p.cost for p in self.plans]
             results, out = run_pairs(self.plans, lambda p: self._pair_values(p, grey, masks, batched), needs, fuse,
                                      pool if parallel else None, costs)
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
-        timings["fuse"] = fuse_s[0]
+        timings["fuse"] = sum(fuse_s)
         timings["total"] = time.perf_counter() - t_start
         self.last_timings = timings
         self.last_warning = self._empty_frame_warning(out)

@@ -58,6 +58,21 @@ class PairPlan:
     left: PairSide
     right: PairSide
 
+    @property
+    def cost(self) -> float:
+        """Work of one frame (canvas area x search range; SGBM's cost), for scheduling."""
+        return float(self.pair.size[0] * self.pair.size[1] * self.pair.max_disparity)
+
+    @property
+    def name(self) -> str:
+        """`left|right`."""
+        return self.pair.name
+
+    @property
+    def focal_baseline(self) -> float:
+        """f B (px m) of the disparities matched: disparity = this / rectified depth."""
+        return float(self.pair.focal_px * self.pair.baseline_m)
+
 
 def inner_core(valid: np.ndarray, border: int, core_x: tuple[int, int] | None = None) -> np.ndarray:
     """Bool: pixels of a canvas mask whose (2 border + 1)^2 neighbourhood is all valid, in columns `core_x`."""
@@ -66,8 +81,8 @@ def inner_core(valid: np.ndarray, border: int, core_x: tuple[int, int] | None = 
     return inner if core_x is None else inner[:, core_x[0] : core_x[1]]
 
 
-def ground_disparity(pair: RectifiedPair, rect: Camera, ratio: float) -> np.ndarray | None:
-    """Float32 (H, core width): the smallest disparity a match of `rect`'s canvas pixel may have, from the ground.
+def ground_disparity(rect: Camera, baseline_m: float, core_x: tuple[int, int], ratio: float) -> np.ndarray | None:
+    """Float32 (H, columns `core_x`): the smallest disparity f B / z a match of `rect`'s pixel may have (ground).
 
     A ray that points down meets the ground (the plane ego z = 0) at rectified depth h / (-dir_z), with h
     the camera centre's height and dir the ray at rectified z = 1; nothing it sees lies farther. A match
@@ -79,11 +94,11 @@ def ground_disparity(pair: RectifiedPair, rect: Camera, ratio: float) -> np.ndar
     if h <= 0:
         return None
     K, R = rect.intrinsics.K, rect.sensor_to_ego[:3, :3]
-    x0, x1 = pair.core_x
+    x0, x1 = core_x
     u = (np.arange(x0, x1, dtype=np.float64) - K[0, 2]) / K[0, 0]
     v = (np.arange(rect.height, dtype=np.float64) - K[1, 2]) / K[1, 1]
     dir_z = R[2, 0] * u[None, :] + R[2, 1] * v[:, None] + R[2, 2]  # ego z of the ray (rectified z = 1)
-    return np.maximum(K[0, 0] * pair.baseline_m * -dir_z / (ratio * h), 0.0).astype(np.float32)
+    return np.maximum(K[0, 0] * baseline_m * -dir_z / (ratio * h), 0.0).astype(np.float32)
 
 
 def same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: float = 1e-3) -> bool:
@@ -92,9 +107,9 @@ def same_pose(a: np.ndarray, b: np.ndarray, rot_tol: float = 1e-4, trans_tol: fl
     return bool(angle < rot_tol and np.linalg.norm(a[:3, 3] - b[:3, 3]) < trans_tol)
 
 
-def _facing_half(fisheye: Camera, other: Camera) -> Camera:
-    """The virtual pinhole half of `fisheye` that faces `other`."""
-    halves = virtual_pinholes(fisheye)
+def facing_half(fisheye: Camera, other: Camera, scale: float = 1.0) -> Camera:
+    """The virtual pinhole half of `fisheye` that faces `other` (focal length `scale` x the fisheye's resolution)."""
+    halves = virtual_pinholes(fisheye, scale=scale)
     axis = other.sensor_to_ego[:3, 2]
     return max(halves, key=lambda h: float(h.sensor_to_ego[:3, 2] @ axis))
 
@@ -110,9 +125,9 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
         src_a, src_b = cam_a, cam_b
         if geo.fisheye == "virtual":
             if cam_a.intrinsics.depth_is_range:
-                src_a = _facing_half(cam_a, cam_b)
+                src_a = facing_half(cam_a, cam_b)
             if cam_b.intrinsics.depth_is_range:
-                src_b = _facing_half(cam_b, cam_a)
+                src_b = facing_half(cam_b, cam_a)
         pair = rectify_pair(
             src_a, src_b, geo.scale, geo.min_depth, geo.margin_px, geo.max_azimuth_deg, geo.max_elevation_deg
         )
@@ -136,7 +151,7 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
                 rays[orig.name] = orig.intrinsics.ray_grid()
             back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
             ratio = config.filters.ground_depth_ratio
-            floor = ground_disparity(pair, rect, ratio) if ratio > 0 else None
+            floor = ground_disparity(rect, pair.baseline_m, pair.core_x, ratio) if ratio > 0 else None
             sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1],
                                   min_disparity=floor))
         plans.append(PairPlan(pair, sides[0], sides[1]))
@@ -164,4 +179,4 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
     return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
 
-__all__ = ["PairPlan", "PairSide", "ground_disparity", "inner_core", "plan_pairs", "same_pose"]
+__all__ = ["PairPlan", "PairSide", "facing_half", "ground_disparity", "inner_core", "plan_pairs", "same_pose"]
