@@ -10,7 +10,7 @@ from sgde_plugin.benchmarks.ring_truth import on_moving_box
 from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
 from sgde_plugin.calib.features import Keypoints
 from sgde_plugin.calib.pipeline import window_ego_poses
-from sgde_plugin.calib.static_world import StaticConfig, gate_cross_time, mark_static_evidence
+from sgde_plugin.calib.static_world import StaticConfig, mark_static_evidence, static_consistent
 from sgde_plugin.cameras import Pinhole
 from sgde_plugin.geometry import camera_mount, make_transform, yaw_pitch_roll_to_rotation
 from sgde_plugin.stereo.rectify import torch_threads
@@ -83,7 +83,7 @@ def test_an_object_driving_along_is_left_out_of_matches_across_time_and_a_wall_k
             ra, _ = MODEL.unproject(fa.uv[np.searchsorted(fa.index, common)])
             rb, _ = MODEL.unproject(fb.uv[np.searchsorted(fb.index, common)])
             rel = np.linalg.inv(poses["b"][t2]) @ poses["a"][t]
-            keep = gate_cross_time(common, common, ra, rb, fa, fb, rel)
+            keep = static_consistent(common, common, ra, rb, fa, fb, rel)
             kept["van"].append(keep[common < n_van])
             kept["wall"].append(keep[common >= n_van])
     van, wall = np.concatenate(kept["van"]), np.concatenate(kept["wall"])

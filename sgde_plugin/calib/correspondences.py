@@ -18,7 +18,7 @@ from .guided import GuidedConfig, guided_search
 from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
 from .overlap import OverlapGrid, overlap_grid, pixels_per_radian
 from .refine import RefineConfig, apply_positions, refine_matches
-from .static_world import StaticConfig, gate_cross_time, mark_window
+from .static_world import StaticConfig, mark_window, static_consistent
 from .views import VIEW_INTERPOLATIONS, VirtualView, overlap_view
 
 MATCHERS = ("sift", "loftr")
@@ -285,13 +285,15 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
     tracks see a point from both cameras at several frames: its depth is then fixed by the ego motion (a
     baseline of metres) instead of by the mount's baseline alone, which separates a narrow pair's rotation
     from its translation. Keypoints that stay at one pixel (`mark_fixed`: at infinity or moving with the
-    car) are left out."""
+    car) or move unlike a static point are left out, and so are the ends of same-frame correspondences whose
+    range disagrees with what their cameras' frames say (`static_world`: an object that drives along)."""
     rng = np.random.default_rng(cfg.seed)
     unlimited = replace(cfg, max_per_view_pair=1 << 30)
     links = []
+    static = _static_correspondences(pm, feats, poses, cfg)
     ends = ((pm.cam_a, pm.cam_b, pm.frame_a, pm.kp_a), (pm.cam_b, pm.cam_a, pm.frame_b, pm.kp_b))
     for cam, other, frames, kps in ends:
-        used = {t: set(kps[frames == t].tolist()) for t in range(T)}
+        used = {t: set(kps[(frames == t) & static].tolist()) for t in range(T)}
         verified = []
         for t in range(T - 1):
             if not (used[t] or used[t + 1]):
@@ -309,6 +311,21 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
         if verified:
             links.append(assemble_pair(cam, cam, verified))
     return links
+
+
+def _static_correspondences(pm: PairMatches, feats: dict, poses: dict[str, np.ndarray], cfg: MatchConfig
+                            ) -> np.ndarray:
+    """Per correspondence of `pm`: consistent with a static point (cross-time ones passed the gate already;
+    same-frame ones on an object that drives along are valid matches but no static point)."""
+    ok = np.ones(len(pm), dtype=bool)
+    if not cfg.static.enabled:
+        return ok
+    for t in np.unique(pm.frame_a[pm.frame_a == pm.frame_b]):
+        sel = np.flatnonzero((pm.frame_a == t) & (pm.frame_b == t))
+        ok[sel] = static_consistent(pm.kp_a[sel], pm.kp_b[sel], pm.rays_a[sel], pm.rays_b[sel],
+                                  feats[(int(t), pm.cam_a, pm.cam_b)], feats[(int(t), pm.cam_b, pm.cam_a)],
+                                  _rel(poses, pm.cam_a, pm.cam_b, int(t), int(t)), cfg.static)
+    return ok
 
 
 def _verify_all(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], T: int, poses: dict[str, np.ndarray],
@@ -457,12 +474,12 @@ def _sift_tentative(feats: dict, grids: dict, a: str, b: str, t: int, t2: int, c
 def _static_only(tent: Tentative, feats: dict, cams: dict[str, Camera], a: str, b: str, t: int, t2: int,
                  rel: np.ndarray, cfg: MatchConfig) -> Tentative:
     """Across time, only the tentative matches whose triangulated range agrees with what each keypoint's own
-    camera says over time (`static_world.gate_cross_time`; rel: a at t -> b at t2, starting rig)."""
+    camera says over time (`static_world.static_consistent`; rel: a at t -> b at t2, starting rig)."""
     if t == t2 or not cfg.static.enabled or not len(tent.uv_a):
         return tent
     ra, _ = cams[a].intrinsics.unproject(tent.uv_a)
     rb, _ = cams[b].intrinsics.unproject(tent.uv_b)
-    keep = gate_cross_time(tent.kp_a, tent.kp_b, ra, rb, feats[(t, a, b)], feats[(t2, b, a)], rel, cfg.static)
+    keep = static_consistent(tent.kp_a, tent.kp_b, ra, rb, feats[(t, a, b)], feats[(t2, b, a)], rel, cfg.static)
     return Tentative(*(getattr(tent, k)[keep] for k in ("uv_a", "uv_b", "sigma_a", "sigma_b", "kp_a", "kp_b")))
 
 

@@ -22,7 +22,7 @@ as a conjugation), and no other camera:
 2. A partner on the right side gives the point's inverse range from the ego's metres (`inv_range`, with a
    1-sigma from one pixel of noise): a moving object that happens to slide along its epipolar line looks
    like a far static point there (its drift is slow), and beside the car, 3-5 m away, across cameras.
-3. `gate_cross_time`: a tentative match across time is dropped when either keypoint is `moving`, or when
+3. `static_consistent`: a tentative match across time is dropped when either keypoint is `moving`, or when
    the inverse range it triangulates to (starting rig and ego motion) disagrees with a keypoint's own
    `inv_range` by more than `sigmas` sigmas, the match's sigma being the starting rig's angular
    uncertainty `start_deg` over the baseline.
@@ -196,10 +196,11 @@ def _at(keys: Keypoints, index: np.ndarray) -> np.ndarray:
     return np.where(keys.index[order[pos]] == index, order[pos], -1)
 
 
-def gate_cross_time(kp_a: np.ndarray, kp_b: np.ndarray, rays_a: np.ndarray, rays_b: np.ndarray, fa: Keypoints,
+def static_consistent(kp_a: np.ndarray, kp_b: np.ndarray, rays_a: np.ndarray, rays_b: np.ndarray, fa: Keypoints,
                     fb: Keypoints, rel: np.ndarray, cfg: StaticConfig | None = None) -> np.ndarray:
-    """Mask of the matches across time (keypoint indices kp_a of `fa`, kp_b of `fb`; rays; rel: a at t -> b at
-    t2 from the starting rig and the ego motion) that are consistent with a static point (module docstring)."""
+    """Mask of the matches (keypoint indices kp_a of `fa`, kp_b of `fb`; rays; rel: a at t -> b at t2 from the
+    starting rig and the ego motion) that are consistent with a static point (module docstring). Across time
+    it is the gate; in the same frame it tells a valid match on a moving object from a static point."""
     cfg = cfg or StaticConfig()
     keep = np.ones(kp_a.size, dtype=bool)
     if not kp_a.size:

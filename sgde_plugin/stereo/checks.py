@@ -54,6 +54,15 @@ def match_box(*confs: np.ndarray, halo: int = HALO) -> tuple[slice, slice] | Non
             slice(max(0, cols[0] - halo), min(w, cols[-1] + 1 + halo)))
 
 
+def hull(*boxes: tuple[slice, slice] | None) -> tuple[slice, slice] | None:
+    """The smallest box holding every box given (`match_box` boxes; None = empty); None if all are empty."""
+    given = [b for b in boxes if b is not None]
+    if not given:
+        return None
+    return (slice(min(b[0].start for b in given), max(b[0].stop for b in given)),
+            slice(min(b[1].start for b in given), max(b[1].stop for b in given)))
+
+
 def check_pair(m: MatchedPair, config: PriorConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Refined and checked (disp_l, conf_l, disp_r, conf_r) over the core columns; confidence 0 = rejected.
 
@@ -63,7 +72,7 @@ def check_pair(m: MatchedPair, config: PriorConfig) -> tuple[np.ndarray, np.ndar
     """
     cfg = config
     boxes = (match_box(m.conf_l), match_box(m.conf_r))
-    both = match_box(m.conf_l, m.conf_r)
+    both = hull(*boxes)  # = match_box(m.conf_l, m.conf_r): the box of a union holds the boxes of its parts
     if both is None:
         return m.disp_l.copy(), np.zeros_like(m.conf_l), m.disp_r.copy(), np.zeros_like(m.conf_r)
     rows = both[0]  # the canvases' rows that any box needs, as float32 grey
@@ -112,17 +121,13 @@ def _photometric(
     cfg = config
     t, mad_max = cfg.filters.min_zncc, cfg.filters.max_abs_diff
     ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
-    # in place, the same operations in the same order as conf *= clip((ncc - t) / (1 - t)) * clip(1 - mad / mad_max)
-    zncc = np.clip(np.divide(np.subtract(ncc, t, out=ncc), 1 - t, out=ncc), 0, 1, out=ncc)
-    diff = np.clip(np.subtract(1, np.divide(mad, mad_max, out=mad), out=mad), 0, 1, out=mad)
-    conf *= np.multiply(zncc, diff, out=zncc)
+    conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / mad_max, 0, 1)
     if cfg.filters.min_texture > 0:  # rows without x-structure are ambiguous
-        conf *= np.clip(np.subtract(np.divide(texture, cfg.filters.min_texture, out=texture), 1, out=texture), 0, 1,
-                        out=texture)
+        conf *= np.clip(texture / cfg.filters.min_texture - 1, 0, 1)
     conf *= disp / (disp + cfg.confidence.disparity_px)  # small disparities give uncertain depth
     if cfg.confidence.edge_jump_px > 0:
         conf *= discontinuity_factor(disp, conf > 0, cfg.confidence.edge_jump_px)
     remove_islands(disp, conf, cfg.filters.min_region_px)  # isolated islands are mostly wrong matches
 
 
-__all__ = ["HALO", "MatchedPair", "check_pair", "match_box"]
+__all__ = ["HALO", "MatchedPair", "check_pair", "hull", "match_box"]

@@ -93,34 +93,17 @@ def window_scores(
     box = (window, window)
     e = a - bw
     if offset is None:
-        offset = median(e[valid]) if valid.any() else 0.0
-    e -= offset  # a Python float: taken in the array's precision, as `e - offset` was
-    mad = cv2.blur(np.abs(e, out=e), box)
+        offset = float(np.median(e[valid])) if valid.any() else 0.0
+    mad = cv2.blur(np.abs(e - offset), box)
     ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
-    va = cv2.blur(np.multiply(a, a, out=e), box)
-    va -= ma * ma
-    vb = cv2.blur(np.multiply(bw, bw, out=e), box)
-    vb -= mb * mb
-    cov = cv2.blur(np.multiply(a, bw, out=e), box)
-    cov -= np.multiply(ma, mb, out=ma)
-    flat = np.minimum(va, vb) < min_std**2
-    prod = np.multiply(va, vb, out=va)
-    ncc = np.divide(cov, np.sqrt(np.maximum(prod, 1e-6, out=prod), out=prod), out=cov)
-    np.copyto(ncc, np.float32(-1.0), where=flat)
+    va = cv2.blur(a * a, box) - ma * ma
+    vb = cv2.blur(bw * bw, box) - mb * mb
+    cov = cv2.blur(a * bw, box) - ma * mb
+    ncc = cov / np.sqrt(np.maximum(va * vb, 1e-6))
+    ncc[np.minimum(va, vb) < min_std**2] = -1.0
     gx = x_gradient(a)
-    texture = np.sqrt(cv2.blur(np.multiply(gx, gx, out=gx), box), out=vb)
+    texture = np.sqrt(cv2.blur(gx * gx, box))
     return ncc, mad, texture
-
-
-def median(values: np.ndarray) -> float:
-    """`np.median` of a non-empty 1-D float array without NaNs: the same value from one partition and no NaN pass
-    (for an even count the lower middle value is the largest of the lower half)."""
-    n = values.shape[0]
-    k = n // 2
-    part = np.partition(values, k)
-    if n % 2:
-        return float(part[k])
-    return float(np.mean(np.array([part[:k].max(), part[k]], values.dtype)))
 
 
 def lr_check(
@@ -152,7 +135,7 @@ def remove_islands(disp: np.ndarray, conf: np.ndarray, min_area: int, max_step: 
         return
     d16 = np.where(conf > 0, np.rint(disp * 16), -16).astype(np.int16)
     cv2.filterSpeckles(d16, -16, int(min_area), int(round(max_step * 16)))
-    np.copyto(conf, np.float32(0), where=d16 < 0)
+    conf[d16 < 0] = 0
 
 
 NORMALIZATIONS = ("none", "gain", "local")
