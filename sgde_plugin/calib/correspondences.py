@@ -210,20 +210,20 @@ def find_correspondences(
     T = ego.shape[0]
     ego_of = {c.name: ego[:, i] for i, c in enumerate(cameras)}
     grids = predict_overlaps(cams, pairs, ego_of, cfg, timings)
+    poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
     images = _ImageCache(image)
     loftr = load_loftr(cfg.loftr_weights) if cfg.matcher == "loftr" else None
     feats, view_images = None, {}
     if loftr is None:
-        involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
-        feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress, view_images)
-    poses = {n: np.einsum("tij,jk->tik", ego_of[n], cams[n].sensor_to_ego) for n in ego_of}
-    if feats is not None and cfg.cross_time and cfg.static.enabled and T > 1:
-        t0 = time.perf_counter()
-        mark_window(feats, {n: c.intrinsics for n, c in cams.items()}, poses, cfg.static)
-        timings.add("features", t0)
-    match = (lambda a, b, t, t2: _static_only(_sift_tentative(feats, grids, a, b, t, t2, cfg), feats, cams, a, b, t,
-                                              t2, _rel(poses, a, b, t, t2), cfg)) if loftr is None else (
-        lambda a, b, t, t2: _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg))
+        feats = _window_features(cameras, cams, pairs, grids, T, images, masks, poses, cfg, timings, show_progress,
+                                 view_images)
+
+        def match(a: str, b: str, t: int, t2: int) -> Tentative:
+            return _static_only(_sift_tentative(feats, grids, a, b, t, t2, cfg), feats, cams, a, b, t, t2,
+                                _rel(poses, a, b, t, t2), cfg)
+    else:
+        def match(a: str, b: str, t: int, t2: int) -> Tentative:
+            return _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg)
     densify = _guided_densifier(feats, view_images, grids, cams, cfg) if loftr is None else None
     verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress, densify)
     if densify is not None:
@@ -232,18 +232,40 @@ def find_correspondences(
                     for a, b in pairs}
         timings.add("ransac", t0)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
+    if feats is not None:
+        out = _refine_and_link(out, feats, view_images, cams, poses, cfg, T, timings)
+    return out
+
+
+def _refine_and_link(out: list[PairMatches], feats: dict, view_images: dict, cams: dict[str, Camera],
+                     poses: dict[str, np.ndarray], cfg: MatchConfig, T: int, timings: Timings) -> list[PairMatches]:
+    """The optional keypoint refinement along tracks, then the temporal links (on the refined positions)."""
     positions = None
-    if feats is not None and cfg.refine:
+    if cfg.refine:
         t0 = time.perf_counter()
         out, facts = refine_matches(out, view_images, cams, poses, cfg.refinement)
         positions = facts["positions"]
         timings.add("refine", t0)
-    if feats is not None and cfg.temporal_links and cfg.cross_time and T > 1:
+    if cfg.temporal_links and cfg.cross_time and T > 1:
         _add_temporal_links(out, cams, feats, poses, cfg, T, timings)
         if positions is not None:  # links share keypoints with the tracks: the same refined positions
             for pm in out:
                 pm.links = [apply_positions(link, positions, cams) for link in pm.links]
     return out
+
+
+def _window_features(cameras: Sequence[Camera], cams: dict[str, Camera], pairs: Sequence[tuple[str, str]],
+                     grids: dict, T: int, images: _ImageCache, masks: dict[str, np.ndarray] | None,
+                     poses: dict[str, np.ndarray], cfg: MatchConfig, timings: Timings, show_progress: bool | None,
+                     view_images: dict) -> dict:
+    """SIFT features of every involved camera over the window, marked static or moving when asked."""
+    involved = sorted({n for p in pairs for n in p}, key=[c.name for c in cameras].index)
+    feats = detect_features(cams, involved, grids, T, images, masks, cfg, timings, show_progress, view_images)
+    if cfg.cross_time and cfg.static.enabled and T > 1:
+        t0 = time.perf_counter()
+        mark_window(feats, {n: c.intrinsics for n, c in cams.items()}, poses, cfg.static)
+        timings.add("features", t0)
+    return feats
 
 
 def _guided_densifier(feats: dict, view_images: dict, grids: dict, cams: dict[str, Camera], cfg: MatchConfig

@@ -233,7 +233,27 @@ def refine_matches(matches: Sequence[PairMatches], views: dict, cams: dict, pose
     # each view's rotation to the world at the starting rig, and its pinhole matrix (for the initial warps)
     view_to_world = np.stack([poses[v[1]][v[0]][:3, :3] @ views[v].view.R for v in vkeys])
     K = np.stack([views[v].view.camera.intrinsics.K for v in vkeys])
-    # each node's position in its view, from its ray (exactly where the keypoint was detected)
+    uv0 = _view_positions(matches, views, vkeys, node_view, na, nb, n)
+    uv = uv0.copy()
+    parent, depth = _tree(n, na, nb)
+    ok, failed = _align_tree(uv, parent, depth, pimg, node_view, view_to_world, K, cfg)
+    positions: dict = {}
+    for k, v in enumerate(vkeys):
+        rows = np.flatnonzero(node_view == k)
+        cam_rays = views[v].view.rays_in_source(uv[rows])
+        for r, ray in zip(rows, cam_rays):
+            positions[keys[r][0]] = ray if ok[r] else None
+    out = [apply_positions(pm, positions, cams) for pm in matches]
+    moved = np.linalg.norm(uv - uv0, axis=1)[ok & (depth > 0)]
+    stats.update(refined=int((ok & (depth > 0)).sum()), dropped=int((~ok).sum()),
+                 correspondences_dropped=int(sum(len(a) - len(b) for a, b in zip(matches, out))),
+                 median_shift_px=float(np.median(moved)) if moved.size else 0.0, failed=failed)
+    return out, {"positions": positions, **stats}
+
+
+def _view_positions(matches: Sequence[PairMatches], views: dict, vkeys: list, node_view: np.ndarray,
+                    na: np.ndarray, nb: np.ndarray, n: int) -> np.ndarray:
+    """Each node's position (n, 2) in its view, from its ray (exactly where the keypoint was detected)."""
     rays = np.zeros((n, 3))
     for pm, sl in _slices(matches):
         for col, rr in ((na[sl], pm.rays_a), (nb[sl], pm.rays_b)):
@@ -245,8 +265,13 @@ def refine_matches(matches: Sequence[PairMatches], views: dict, cams: dict, pose
         view = views[v].view
         p, _ = view.camera.intrinsics.project(rays[rows] @ view.R)
         uv[rows] = p
-    uv0 = uv.copy()
-    parent, depth = _tree(n, na, nb)
+    return uv
+
+
+def _align_tree(uv: np.ndarray, parent: np.ndarray, depth: np.ndarray, pimg: list, node_view: np.ndarray,
+                view_to_world: np.ndarray, K: np.ndarray, cfg: RefineConfig) -> tuple[np.ndarray, dict[str, int]]:
+    """Align every node to its parent level by level (updates `uv` in place); which nodes held, failure counts."""
+    n = len(uv)
     ok = np.ones(n, bool)
     failed: dict[str, int] = {}
     for level in range(1, int(depth.max()) + 1 if n else 1):
@@ -259,19 +284,7 @@ def refine_matches(matches: Sequence[PairMatches], views: dict, cams: dict, pose
         pos, good = align_patches(pimg, node_view[par], uv[par], pimg, node_view[child], uv[child], A0, cfg, failed)
         uv[child[good]] = pos[good]
         ok[child[~good]] = False
-    positions: dict = {}
-    for k, v in enumerate(vkeys):
-        rows = np.flatnonzero(node_view == k)
-        view = views[v].view
-        cam_rays = view.rays_in_source(uv[rows])
-        for r, ray in zip(rows, cam_rays):
-            positions[keys[r][0]] = ray if ok[r] else None
-    out = [apply_positions(pm, positions, cams) for pm in matches]
-    moved = np.linalg.norm(uv - uv0, axis=1)[ok & (depth > 0)]
-    stats.update(refined=int((ok & (depth > 0)).sum()), dropped=int((~ok).sum()),
-                 correspondences_dropped=int(sum(len(a) - len(b) for a, b in zip(matches, out))),
-                 median_shift_px=float(np.median(moved)) if moved.size else 0.0, failed=failed)
-    return out, {"positions": positions, **stats}
+    return ok, failed
 
 
 def _slices(matches: Sequence[PairMatches]):

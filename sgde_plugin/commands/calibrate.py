@@ -93,20 +93,13 @@ def run(args: argparse.Namespace) -> int:
     from ..rig import write_rig_json
 
     frames = parse_frames(args.frames)
-    if args.window < 1:
-        raise InputError(None, "--window", "must be at least 1")
-    if args.beta is not None and args.beta < 0:
-        raise InputError(None, "--beta", "must be >= 0")
-    if not args.alpha > 0:
-        raise InputError(None, "--alpha", "must be positive")
+    _check_numbers(args)
     rig = load_rig(args.dir, check_images=True)
     if args.masks:
         from ..masks import attach_masks
 
         rig = attach_masks(rig, args.masks)
     beta = default_beta(rig, args.matcher) if args.beta is None else args.beta
-    if args.max_iterations < 1:
-        raise InputError(None, "--max-iterations", "must be at least 1")
     rules = AcceptanceRules(min_correspondences=beta, max_translation_change_m=args.alpha,
                             max_iterations=args.max_iterations)
     acfg = AdjustConfig() if args.refine_focal is None else AdjustConfig(refine_focal=args.refine_focal)
@@ -117,11 +110,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         atomic_write_text(Path(args.json), json.dumps(block, indent=1) + "\n")
     print(format_table(summary_rows(block), digits=3))
-    for w in block["windows"]:
-        if w["accepted"] and w.get("focal"):
-            print(f"window {w['index']} focal length estimate (%, 1-sigma; * adopted): " + ", ".join(
-                f"{f['camera']} {f['estimate_pct']:+.3f} ({f['sigma_pct'] or float('nan'):.3f})"
-                f"{'*' if f['adopted'] else ''}" for f in w["focal"]))
+    _print_focal(block)
     n_ok = sum(w["accepted"] for w in block["windows"])
     print(f"{args.method}: {n_ok}/{len(block['windows'])} windows accepted; wrote {args.out}")
     line = rejection_line(block)
@@ -131,6 +120,27 @@ def run(args: argparse.Namespace) -> int:
 
 
 STRICT_EXIT = 3
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """One InputError for the first numeric option out of range."""
+    if args.window < 1:
+        raise InputError(None, "--window", "must be at least 1")
+    if args.beta is not None and args.beta < 0:
+        raise InputError(None, "--beta", "must be >= 0")
+    if not args.alpha > 0:
+        raise InputError(None, "--alpha", "must be positive")
+    if args.max_iterations < 1:
+        raise InputError(None, "--max-iterations", "must be at least 1")
+
+
+def _print_focal(block: dict) -> None:
+    """The focal length estimates of each accepted window that made them."""
+    for w in block["windows"]:
+        if w["accepted"] and w.get("focal"):
+            print(f"window {w['index']} focal length estimate (%, 1-sigma; * adopted): " + ", ".join(
+                f"{f['camera']} {f['estimate_pct']:+.3f} ({f['sigma_pct'] or float('nan'):.3f})"
+                f"{'*' if f['adopted'] else ''}" for f in w["focal"]))
 
 
 def rejection_line(block: dict) -> str | None:
