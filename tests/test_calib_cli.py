@@ -35,6 +35,7 @@ def test_calibrate_writes_a_refined_rig(folder, tmp_path, capsys):
     block = refined.extra["calibration"]
     assert json.loads(report.read_text()) == block
     assert block["method"] == "glc" and block["windows"][0]["accepted"]
+    assert block["keypoint_refinement"] is False  # no --refine-keypoints: "auto", off on this pinhole rig
     truth = read_rig_json(folder / "rig_true.json")
     before = max(r["rotation_deg"] for r in relative_pose_errors(read_rig_json(folder / "rig.json"), truth))
     after = max(r["rotation_deg"] for r in relative_pose_errors(refined, truth))
@@ -42,6 +43,15 @@ def test_calibrate_writes_a_refined_rig(folder, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "C0-C1" in text and "1/1 windows accepted" in text
     assert [p.name for p in out.parent.iterdir()] == ["rig.json"]  # atomic write, no leftovers
+
+
+@pytest.mark.parametrize("flag,on", [("--refine-keypoints", True), ("--no-refine-keypoints", False)])
+def test_refine_keypoints_flags_force_the_refinement(folder, tmp_path, flag, on):
+    """The flags override "auto" (which is off on this pinhole rig); the block says what ran."""
+    out = tmp_path / "rig.json"
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", flag]) == 0
+    block = read_rig_json(out).extra["calibration"]
+    assert block["keypoint_refinement"] is on and block["windows"][0]["accepted"]
 
 
 def _broken_rig(folder, tmp_path, edit):

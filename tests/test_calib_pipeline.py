@@ -57,6 +57,7 @@ def test_glc_window_accepted_black_camera_window_rejected(box):
     pair = w0["pairs"][0]
     assert pair["inliers"] >= pair["adjusted_correspondences"] > 0 and 0 < pair["rms_px"] < 1.0
     assert out.extra["calibration"] is block and block["method"] == "glc" and block["accepted"]
+    assert block["keypoint_refinement"] is False  # the default ("auto") on a pinhole rig
 
 
 def test_previous_calibration_is_carried_forward(box):

@@ -5,13 +5,21 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from sgde_plugin.calib.correspondences import MatchConfig, ObservationPair, PairMatches, find_correspondences
+from sgde_plugin.calib.correspondences import (
+    MatchConfig,
+    ObservationPair,
+    PairMatches,
+    find_correspondences,
+    refines_keypoints,
+)
 from sgde_plugin.calib.features import match_descriptors, sift_features
 from sgde_plugin.calib.outliers import epipolar_angle_deg
 from sgde_plugin.calib.overlap import pixels_per_radian
 from sgde_plugin.calib.refine import RefineConfig, _tree, align_patches, apply_positions, patch_image
 from sgde_plugin.calib.simulate import box_world_rig
+from sgde_plugin.errors import InputError
 from sgde_plugin.stereo.rectify import torch_threads
+from sgde_plugin.synth.presets import preset_cameras
 
 S = 240
 
@@ -164,7 +172,26 @@ def test_refined_correspondences_sit_closer_to_the_true_epipolar_geometry(box):
                 d.append(np.abs(np.radians(ang)) * pixels_per_radian(true[pm.cam_a].intrinsics))
         return float(np.median(np.concatenate(d))), sum(len(pm) for pm in ms)
 
-    sift, n_sift = median_distance(MatchConfig())
+    sift, n_sift = median_distance(MatchConfig(refine=False))
     refined, n_refined = median_distance(MatchConfig(refine=True))
     assert refined < 0.6 * sift, (sift, refined)
     assert n_refined > 0.6 * n_sift
+
+
+def test_auto_refines_the_keypoints_of_rigs_with_a_fisheye_camera_only():
+    """The default ("auto") is on for the urban-fisheye rig (Ocam cameras), and for a pinhole rig with one fisheye
+    in it, off for the all-pinhole presets and random rigs; True and False force it; anything else is an input
+    error."""
+    fisheye = preset_cameras("urban-fisheye", 0.25)
+    pinhole = {p: preset_cameras(p, 0.25) for p in ("nuscenes", "ddad")}
+    pinhole.update({f"random {s}": preset_cameras("random", 0.25, seed=s) for s in range(3)})
+    auto = MatchConfig()
+    assert auto.refine == "auto"
+    assert refines_keypoints(auto, fisheye) is True
+    assert refines_keypoints(auto, [*pinhole["nuscenes"][:5], fisheye[0]]) is True
+    for name, cams in pinhole.items():
+        assert refines_keypoints(auto, cams) is False, name
+        assert refines_keypoints(MatchConfig(refine=True), cams) is True
+    assert refines_keypoints(MatchConfig(refine=False), fisheye) is False
+    with pytest.raises(InputError):
+        refines_keypoints(MatchConfig(refine="yes"), fisheye)

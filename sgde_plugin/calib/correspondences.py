@@ -58,13 +58,26 @@ class MatchConfig:
     temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     static: StaticConfig = field(default_factory=StaticConfig)  # matches across time on static points only
-    refine: bool = False  # sub-pixel patch alignment of the verified keypoints along their tracks (`refine.py`)
+    # sub-pixel patch alignment of the verified keypoints along their tracks (`refine.py`): True, False, or "auto",
+    # on when the rig has a non-pinhole camera (`refines_keypoints`)
+    refine: bool | str = "auto"
     refinement: RefineConfig = field(default_factory=RefineConfig)
     seed: int = 0
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
         return {k: (vars(v) if is_dataclass(v := getattr(self, k)) else v) for k in self.__dataclass_fields__}
+
+
+def refines_keypoints(cfg: MatchConfig, cameras: Sequence[Camera]) -> bool:
+    """Whether the keypoint refinement runs on a rig of `cameras`: `cfg.refine`, where "auto" means on exactly when
+    a camera is not a pinhole. SIFT keypoints on the pinhole views resampled from fisheye images are what the
+    alignment fixes; on pinhole rigs it costs nuScenes' noisy-start median (README, issue #17, sessions 7-8)."""
+    if cfg.refine == "auto":
+        return any(not isinstance(c.intrinsics, Pinhole) for c in cameras)
+    if not isinstance(cfg.refine, bool):
+        raise InputError(None, "refine", f"unknown refine setting {cfg.refine!r} (expected True, False or 'auto')")
+    return cfg.refine
 
 
 @dataclass(frozen=True)
@@ -204,6 +217,7 @@ def find_correspondences(
     observation pair (two images), assembly per camera pair.
     """
     cfg = _checked(config or MatchConfig())
+    cfg = replace(cfg, refine=refines_keypoints(cfg, cameras))
     timings = timings or Timings()
     cams = {c.name: c for c in cameras}
     ego = capture_poses(ego_to_world, len(cameras))

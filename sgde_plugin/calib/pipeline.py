@@ -41,7 +41,7 @@ from .acceptance import (
     translation_changes,
 )
 from .ba import AdjustConfig
-from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences
+from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences, refines_keypoints
 from .methods import METHODS, MethodResult, run_method
 
 CALIB_VERSION = "1"
@@ -222,6 +222,7 @@ def _setup(
         raise InputError(None, "reference", f"camera {ref!r} does not exist")
     rules = rules or AcceptanceRules(min_correspondences=default_beta(rig, matcher))
     mcfg = replace(match_config or MatchConfig(), matcher=matcher)
+    mcfg = replace(mcfg, refine=refines_keypoints(mcfg, rig.cameras))  # "auto" resolved for this rig
     if loftr_weights is not None:
         mcfg = replace(mcfg, loftr_weights=str(loftr_weights))
     acfg = replace(adjust_config or AdjustConfig(), max_iterations=rules.max_iterations)
@@ -390,6 +391,7 @@ def _block(setup: Setup, reports: list[dict], history: list[dict]) -> dict:
         "reference": setup.reference,
         "window": setup.window,
         "rules": setup.rules.to_dict(),
+        "keypoint_refinement": setup.match.refine and setup.matcher == "sift",
         "accepted": accepted_any,
         "rule": None if accepted_any or first_rejected is None else first_rejected["rule"],
         "reason": None if accepted_any or first_rejected is None else first_rejected["reason"],

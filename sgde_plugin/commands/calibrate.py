@@ -44,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "intrinsics (default: AdjustConfig.refine_focal)")
     parser.add_argument("--refine-keypoints", action=argparse.BooleanOptionalAction, default=None,
                         help="sift: move each verified keypoint to the sub-pixel position where its patch aligns "
-                             "with its track's (calib/refine.py; default: MatchConfig.refine)")
+                             "with its track's (calib/refine.py; default: on when the rig has a non-pinhole camera, "
+                             "MatchConfig.refine='auto')")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
