@@ -1,4 +1,4 @@
-"""Exact fisheye extrinsics stay exact under the default settings (issue #17 item 2; runtime ~35 s on 2 cores).
+"""Exact fisheye extrinsics stay exact under the default settings (issue #17 item 2; about 15 s on 2 cores).
 
 The urban-fisheye preset (four 220-degree Ocam fisheyes) at half resolution, seed 0, 7 frames, calibrated from
 the true extrinsics as one window: the default ("auto") runs the keypoint refinement on this rig, and the
