@@ -295,3 +295,17 @@ def test_left_right_check_by_nearest_remap_equals_the_gather():
         out = lr_check(disp_a, conf_a, disp_b, conf_b, sign, 1.0)
         assert (~inside & (conf_a > 0)).sum() > 50 and ok.sum() > 200
         assert out.dtype == np.float32 and np.array_equal(out, ref)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 1000, 1001])
+def test_masked_median_is_numpys_median(n):
+    from sgde_plugin.stereo.filters import masked_median
+
+    rng = np.random.default_rng(n)
+    values = (rng.normal(size=(40, 60)) * 30).astype(np.float32)
+    mask = np.zeros(values.shape, bool)
+    mask.reshape(-1)[rng.permutation(mask.size)[:n]] = True
+    before = values.copy()
+    expected = float(np.median(values[mask])) if n else 0.0
+    assert masked_median(values, mask) == expected
+    np.testing.assert_array_equal(values, before)  # the input is left as it was

@@ -121,7 +121,8 @@ class BackProjection:
             z = self.kfb / d
         # kfb > 0: a sample without a value (d <= 0) gives z <= 0 or -inf, outside any range with min_depth > 0
         ok = (z >= min_depth) & (z <= max_depth) if min_depth > 0 else (d > 0) & (z >= min_depth) & (z <= max_depth)
-        return self.index[ok], z[ok], c_all[: self.count][ok]
+        keep = np.flatnonzero(ok)  # one pass over the mask, then three gathers (faster than three masked ones)
+        return self.index.take(keep), z.take(keep), c_all.take(keep)
 
     def depth(
         self, disparity: np.ndarray, confidence: np.ndarray, min_depth: float, max_depth: float

@@ -27,6 +27,20 @@ def shift_maps(disp: np.ndarray, sign: int, x0: int = 0) -> tuple[np.ndarray, np
     return map_x, map_y
 
 
+def masked_median(values: np.ndarray, mask: np.ndarray) -> float:
+    """`np.median(values[mask])` (0 when `mask` is empty), with one partition instead of two."""
+    x = values[mask]
+    n = x.size
+    if n == 0:
+        return 0.0
+    k = n // 2
+    x.partition(k)
+    if n % 2:
+        return float(x[k])
+    # np.median's even case: the mean of the two middle values, in the array's precision
+    return float((x[:k].max() + x[k]) / x.dtype.type(2))
+
+
 def x_gradient(image: np.ndarray) -> np.ndarray:
     """Central-difference horizontal gradient of a float32 image."""
     return cv2.filter2D(image, cv2.CV_32F, _DX, borderType=cv2.BORDER_REPLICATE)
@@ -93,7 +107,7 @@ def window_scores(
     box = (window, window)
     e = a - bw
     if offset is None:
-        offset = float(np.median(e[valid])) if valid.any() else 0.0
+        offset = masked_median(e, valid)
     mad = cv2.blur(np.abs(e - offset), box)
     ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
     va = cv2.blur(a * a, box) - ma * ma
@@ -126,7 +140,13 @@ def lr_check(
                       for m in (disp_b, conf_b))
     diff = np.abs(disp_a - other)
     ok = (conf_a > 0) & (other_c > 0) & (diff <= max_diff)
-    return np.where(ok, conf_a * np.exp(-0.5 * (diff / max_diff) ** 2), 0).astype(np.float32, copy=False)
+    out = np.divide(diff, max_diff, out=diff)  # in place, the same values as -0.5 * (diff / max_diff) ** 2 ...
+    np.multiply(out, out, out=out)
+    np.multiply(out, -0.5, out=out)
+    np.exp(out, out=out)
+    np.multiply(out, conf_a, out=out)  # ... times conf_a, 0 where the check fails
+    out[~ok] = 0
+    return out.astype(np.float32, copy=False)
 
 
 def remove_islands(disp: np.ndarray, conf: np.ndarray, min_area: int, max_step: float = 1.0) -> None:
