@@ -27,7 +27,7 @@ MATCHERS = ("sgbm", "planesweep", "raft-stereo", "torch", "onnx")
 LEARNED_MATCHERS = MATCHERS[2:]
 # matchers of the original views (no rectified pair): `stereo.planesweep`
 SWEEP_MATCHERS = ("planesweep",)
-FISHEYE_PATHS = ("direct", "virtual")
+FISHEYE_PATHS = ("direct", "virtual", "tiled")
 DEVICES = ("cpu", "cuda")
 # settings that change how a prior is computed, not what it is (device, batching): not fingerprinted
 RUNTIME_FIELDS = ("device", "matcher_batch")
@@ -94,9 +94,11 @@ class GeometrySettings:
     min_depth: float = 1.5
     max_depth: float = 80.0
     margin_px: int = 8
-    max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only)
-    max_elevation_deg: float = 50.0
-    fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes
+    max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only; with `fisheye: tiled`,
+    max_elevation_deg: float = 50.0  # the elevation one is each tile's, about the baseline)
+    fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes;
+    #                          "tiled": direct, into as many canvases turned about the baseline as the shared
+    #                          field needs (`planning.baseline_tiles`; pairs without a fisheye as "direct")
 
 
 @dataclass(frozen=True)

@@ -7,18 +7,32 @@ pixels each camera sees and the backward maps from the original cameras to the c
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from ..cameras import Camera
+from ..cameras import Camera, Pinhole
 from ..geometry import rotation_vector
+from ..pairs import left_right
 from ..rig import Rig
 from .backproject import BackProjection, backprojection
 from .config import PriorConfig
-from .rectify import RectifiedPair, WarpMaps, default_rim_px, rectify_pair
+from .rectify import (
+    DISPARITY_STEP,
+    RectifiedPair,
+    WarpMaps,
+    _camera_resolution,
+    _rows,
+    _shared_sector,
+    default_rim_px,
+    rectified_rotation,
+    rectify_pair,
+)
 from .virtual import virtual_pinholes
+
+TILE_OVERLAP_DEG = 5.0  # `fisheye: tiled`: neighbouring tiles share this much field beyond their seam (context)
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,10 +129,12 @@ def facing_half(fisheye: Camera, other: Camera, scale: float = 1.0) -> Camera:
 
 
 def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
-    """Rectified geometry, warp maps and backward maps of every pair of `rig` that rectifies."""
+    """Rectified geometry, warp maps and backward maps of every pair of `rig` that rectifies.
+
+    With `fisheye: tiled`, a pair with a fisheye whose shared field reaches beyond `max_elevation_deg` about
+    the baseline gives one plan per tile (`baseline_tiles`), each back-projecting only the field it owns."""
     geo = config.geometry
-    border = config.sgbm.block_size // 2 + config.filters.border_px
-    rays = {}
+    rays: dict[str, tuple] = {}
     plans = []
     for a, b in rig.pairs:
         cam_a, cam_b = rig.camera(a), rig.camera(b)
@@ -128,34 +144,151 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
                 src_a = facing_half(cam_a, cam_b)
             if cam_b.intrinsics.depth_is_range:
                 src_b = facing_half(cam_b, cam_a)
+        for pair, own in _rectified(src_a, src_b, config):
+            orig_l, orig_r = (cam_a, cam_b) if pair.left is src_a else (cam_b, cam_a)
+            plans.append(_plan_pair(pair, orig_l, orig_r, own, config, rays))
+    return plans
+
+
+def _rectified(src_a: Camera, src_b: Camera, config: PriorConfig) -> list[tuple[RectifiedPair, np.ndarray | None]]:
+    """The rectified pairs of two (source) cameras, each with the canvas rows it owns (None = all): one
+    pair, or with `fisheye: tiled` one per tile of a fisheye pair's field about the baseline."""
+    geo = config.geometry
+    tiled = geo.fisheye == "tiled" and (src_a.intrinsics.depth_is_range or src_b.intrinsics.depth_is_range)
+    tiles = baseline_tiles(src_a, src_b, geo.max_azimuth_deg, geo.max_elevation_deg) if tiled else None
+    if not tiles:
         pair = rectify_pair(
             src_a, src_b, geo.scale, geo.min_depth, geo.margin_px, geo.max_azimuth_deg, geo.max_elevation_deg
         )
-        if pair is None:
-            continue
-        origs, pres, rects = [], [], []
-        for src, rect in ((pair.left, pair.rect_left), (pair.right, pair.rect_right)):
-            orig = cam_a if src is src_a else cam_b
-            origs.append(orig)
-            pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
-            rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
-        valid = [_side_valid(p, r) for p, r in zip(pres, rects)]
-        inner = [inner_core(v, border) for v in valid]
-        possible = _possible(pair, *inner)
-        sides = []
-        x0, x1 = pair.core_x
-        for orig, pre, warp, seen, rect, can, core in zip(
-            origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible, inner
-        ):
-            if orig.name not in rays:
-                rays[orig.name] = orig.intrinsics.ray_grid()
-            back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
-            ratio = config.filters.ground_depth_ratio
-            floor = ground_disparity(rect, pair.baseline_m, pair.core_x, ratio) if ratio > 0 else None
-            sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1],
-                                  min_disparity=floor))
-        plans.append(PairPlan(pair, sides[0], sides[1]))
-    return plans
+        return [] if pair is None else [(pair, None)]
+    out = []
+    for k, (centre, lo, hi, half) in enumerate(tiles):
+        pair = tile_pair(src_a, src_b, centre, half, geo.scale, geo.min_depth, geo.margin_px, geo.max_azimuth_deg,
+                         name=str(k))
+        if pair is not None:
+            out.append((pair, owned_rows(pair, centre, lo, hi)))
+    return out
+
+
+def _plan_pair(
+    pair: RectifiedPair, orig_l: Camera, orig_r: Camera, own: np.ndarray | None, config: PriorConfig, rays: dict
+) -> PairPlan:
+    """Warp maps, canvas masks and backward maps of one rectified pair (`own`: the canvas rows it back-projects)."""
+    border = config.sgbm.block_size // 2 + config.filters.border_px
+    origs, pres, rects = (orig_l, orig_r), [], []
+    for src, rect, orig in zip((pair.left, pair.right), (pair.rect_left, pair.rect_right), origs):
+        pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
+        rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
+    valid = [_side_valid(p, r) for p, r in zip(pres, rects)]
+    inner = [inner_core(v, border) for v in valid]
+    possible = _possible(pair, *inner)
+    if own is not None:
+        possible = tuple(p & own[:, None] for p in possible)
+    sides = []
+    x0, x1 = pair.core_x
+    for orig, pre, warp, seen, rect, can, core in zip(
+        origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible, inner
+    ):
+        if orig.name not in rays:
+            rays[orig.name] = orig.intrinsics.ray_grid()
+        back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
+        ratio = config.filters.ground_depth_ratio
+        floor = ground_disparity(rect, pair.baseline_m, pair.core_x, ratio) if ratio > 0 else None
+        sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1],
+                              min_disparity=floor))
+    return PairPlan(pair, sides[0], sides[1])
+
+
+def _turn_about_x(angle: float) -> np.ndarray:
+    """Columns of a frame turned by `angle` about x (the baseline), in the old frame: z turns towards +y (down)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+
+
+def shared_turns(left: Camera, right: Camera, max_azimuth_deg: float, step_deg: float = 1.0) -> np.ndarray:
+    """Angles (radians, increasing) about the baseline at which both cameras see some direction at infinity.
+
+    The angle is measured from the rectified viewing direction of `rectified_rotation` (positive: down),
+    over directions within `max_azimuth_deg` of the plane normal to the baseline."""
+    R = rectified_rotation(left, right)
+    alpha = np.radians(np.linspace(-max_azimuth_deg, max_azimuth_deg, 61))
+    psi = np.radians(np.arange(-180.0, 180.0, step_deg))
+    aa, pp = np.meshgrid(alpha, psi)
+    dirs = np.stack([np.sin(aa), np.cos(aa) * np.sin(pp), np.cos(aa) * np.cos(pp)], axis=-1) @ R.T
+    both = np.ones(aa.shape, bool)
+    for cam in (left, right):
+        _, ok = cam.intrinsics.project(dirs @ cam.sensor_to_ego[:3, :3])
+        both &= np.asarray(ok, bool)
+    return psi[both.any(axis=1)]
+
+
+def baseline_tiles(
+    left: Camera, right: Camera, max_azimuth_deg: float, max_elevation_deg: float, overlap_deg: float = TILE_OVERLAP_DEG
+) -> list[tuple[float, float, float, float]] | None:
+    """Tiles of the field two cameras share, about their baseline: (centre, owned from, owned to, half-angle), radians.
+
+    Turning a rectified frame about the baseline keeps its rows epipolar, so a field wider than one canvas
+    (`max_elevation_deg` each side) is split into equal tiles, each a canvas centred on its own part: its
+    rectified depth stays close to the distance from the baseline (the search range holds), and its sampling
+    close to uniform. Each tile back-projects only what it owns (the outer tiles own everything beyond them);
+    its canvas reaches `overlap_deg` further for matching context. None when one canvas holds the field."""
+    turns = shared_turns(left, right, max_azimuth_deg)
+    if turns.size == 0:
+        return None
+    step = math.radians(1.0)
+    runs = np.split(turns, np.flatnonzero(np.diff(turns) > 1.5 * step) + 1)
+    run = min(runs, key=lambda r: (0 if r[0] <= 0 <= r[-1] else 1, -r.size))  # the run through 0, else the longest
+    lo, hi = float(run[0]) - step, float(run[-1]) + step
+    limit, overlap = math.radians(max_elevation_deg), math.radians(overlap_deg)
+    if -limit <= lo and hi <= limit:
+        return None
+    n = math.ceil((hi - lo) / (2 * max(limit - overlap, math.radians(1.0))))
+    width = (hi - lo) / n
+    tiles = []
+    for k in range(n):
+        own_lo = -math.inf if k == 0 else lo + k * width
+        own_hi = math.inf if k == n - 1 else lo + (k + 1) * width
+        tiles.append((lo + (k + 0.5) * width, own_lo, own_hi, min(limit, width / 2 + overlap)))
+    return tiles
+
+
+def tile_pair(
+    cam_a: Camera, cam_b: Camera, turn: float, half_angle: float, scale: float, min_depth: float, margin_px: int,
+    max_azimuth_deg: float, samples: int = 241, name: str = "",
+) -> RectifiedPair | None:
+    """`rectify_pair`'s geometry with the rectified frame turned by `turn` (radians, + down) about the baseline
+    and the canvas holding the shared field within `half_angle` of that direction; None if there is none."""
+    left, right = left_right(cam_a, cam_b)
+    R = rectified_rotation(left, right) @ _turn_about_x(turn)
+    baseline = float(np.linalg.norm(right.sensor_to_ego[:3, 3] - left.sensor_to_ego[:3, 3]))
+    az = math.radians(max_azimuth_deg)
+    box = _shared_sector(left, right, R, az, half_angle, samples)
+    if box is None:
+        return None
+    a0, a1, b0, b1, widest = box
+    step_a = 2 * math.tan(az) / (samples - 1)
+    step_b = 2 * math.tan(half_angle) / (_rows(samples, az, half_angle) - 1)
+    a0, a1, b0, b1 = a0 - step_a, a1 + step_a, b0 - step_b, b1 + step_b
+    f = scale * 0.5 * (_camera_resolution(left, R) + _camera_resolution(right, R))
+    d_geom = f * (widest + 2 * step_a) + margin_px
+    max_disp = int(math.ceil(max(min(f * baseline / min_depth, d_geom), 1.0) / DISPARITY_STEP) * DISPARITY_STEP)
+    core_w = int(math.ceil(f * (a1 - a0))) + 2 * margin_px
+    height = int(math.ceil(f * (b1 - b0))) + 2 * margin_px
+    K = np.array([[f, 0.0, max_disp + margin_px - f * a0], [0.0, f, margin_px - f * b0], [0.0, 0.0, 1.0]])
+    model = Pinhole(core_w + 2 * max_disp, height, K, None)
+    cams = []
+    for cam, side in ((left, "L"), (right, "R")):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, cam.sensor_to_ego[:3, 3]
+        cams.append(Camera(f"{left.name}|{right.name}@{name}#{side}", model, T))
+    return RectifiedPair(left, right, cams[0], cams[1], baseline, max_disp, (max_disp, max_disp + core_w))
+
+
+def owned_rows(pair: RectifiedPair, turn: float, own_lo: float, own_hi: float) -> np.ndarray:
+    """Bool (H,): canvas rows whose angle about the baseline, turn + atan((v - cy) / f), lies in [own_lo, own_hi)."""
+    K = pair.rect_left.intrinsics.K
+    angle = turn + np.arctan((np.arange(pair.size[1]) - K[1, 2]) / K[1, 1])
+    return (angle >= own_lo) & (angle < own_hi)
 
 
 def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
@@ -179,4 +312,5 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
     return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
 
-__all__ = ["PairPlan", "PairSide", "facing_half", "ground_disparity", "inner_core", "plan_pairs", "same_pose"]
+__all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core", "owned_rows",
+           "plan_pairs", "same_pose", "shared_turns", "tile_pair"]
