@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from ..cameras import Camera, Pinhole
 from ..geometry import rotation_vector
@@ -150,9 +151,11 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
     return plans
 
 
-def _rectified(src_a: Camera, src_b: Camera, config: PriorConfig) -> list[tuple[RectifiedPair, np.ndarray | None]]:
-    """The rectified pairs of two (source) cameras, each with the canvas rows it owns (None = all): one
-    pair, or with `fisheye: tiled` one per tile of a fisheye pair's field about the baseline."""
+def _rectified(
+    src_a: Camera, src_b: Camera, config: PriorConfig
+) -> list[tuple[RectifiedPair, tuple[float, float] | None]]:
+    """The rectified pairs of two (source) cameras, each with the turns about the baseline it owns (None =
+    all): one pair, or with `fisheye: tiled` one per tile of a fisheye pair's field (`baseline_tiles`)."""
     geo = config.geometry
     tiled = geo.fisheye == "tiled" and (src_a.intrinsics.depth_is_range or src_b.intrinsics.depth_is_range)
     tiles = baseline_tiles(src_a, src_b, geo.max_azimuth_deg, geo.max_elevation_deg) if tiled else None
@@ -166,14 +169,16 @@ def _rectified(src_a: Camera, src_b: Camera, config: PriorConfig) -> list[tuple[
         pair = tile_pair(src_a, src_b, centre, half, geo.scale, geo.min_depth, geo.margin_px, geo.max_azimuth_deg,
                          name=str(k))
         if pair is not None:
-            out.append((pair, owned_rows(pair, centre, lo, hi)))
+            out.append((pair, (lo, hi)))
     return out
 
 
 def _plan_pair(
-    pair: RectifiedPair, orig_l: Camera, orig_r: Camera, own: np.ndarray | None, config: PriorConfig, rays: dict
+    pair: RectifiedPair, orig_l: Camera, orig_r: Camera, own: tuple[float, float] | None, config: PriorConfig,
+    rays: dict,
 ) -> PairPlan:
-    """Warp maps, canvas masks and backward maps of one rectified pair (`own`: the canvas rows it back-projects)."""
+    """Warp maps, canvas masks and backward maps of one rectified pair; `own`: the turns about the baseline
+    whose original pixels it back-projects (None = all)."""
     border = config.sgbm.block_size // 2 + config.filters.border_px
     origs, pres, rects = (orig_l, orig_r), [], []
     for src, rect, orig in zip((pair.left, pair.right), (pair.rect_left, pair.rect_right), origs):
@@ -182,8 +187,6 @@ def _plan_pair(
     valid = [_side_valid(p, r) for p, r in zip(pres, rects)]
     inner = [inner_core(v, border) for v in valid]
     possible = _possible(pair, *inner)
-    if own is not None:
-        possible = tuple(p & own[:, None] for p in possible)
     sides = []
     x0, x1 = pair.core_x
     for orig, pre, warp, seen, rect, can, core in zip(
@@ -191,7 +194,10 @@ def _plan_pair(
     ):
         if orig.name not in rays:
             rays[orig.name] = orig.intrinsics.ray_grid()
-        back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *rays[orig.name], possible=can)
+        grid, ok = rays[orig.name]
+        if own is not None:
+            ok = ok & owned_rays(orig, grid, rectified_rotation(pair.left, pair.right), *own)
+        back = backprojection(orig, rect, pair.baseline_m, pair.core_x, grid, ok, possible=can)
         ratio = config.filters.ground_depth_ratio
         floor = ground_disparity(rect, pair.baseline_m, pair.core_x, ratio) if ratio > 0 else None
         sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1],
@@ -209,7 +215,8 @@ def shared_turns(left: Camera, right: Camera, max_azimuth_deg: float, step_deg: 
     """Angles (radians, increasing) about the baseline at which both cameras see some direction at infinity.
 
     The angle is measured from the rectified viewing direction of `rectified_rotation` (positive: down),
-    over directions within `max_azimuth_deg` of the plane normal to the baseline."""
+    over directions within `max_azimuth_deg` of the plane normal to the baseline (the pair in either order)."""
+    left, right = left_right(left, right)
     R = rectified_rotation(left, right)
     alpha = np.radians(np.linspace(-max_azimuth_deg, max_azimuth_deg, 61))
     psi = np.radians(np.arange(-180.0, 180.0, step_deg))
@@ -284,10 +291,12 @@ def tile_pair(
     return RectifiedPair(left, right, cams[0], cams[1], baseline, max_disp, (max_disp, max_disp + core_w))
 
 
-def owned_rows(pair: RectifiedPair, turn: float, own_lo: float, own_hi: float) -> np.ndarray:
-    """Bool (H,): canvas rows whose angle about the baseline, turn + atan((v - cy) / f), lies in [own_lo, own_hi)."""
-    K = pair.rect_left.intrinsics.K
-    angle = turn + np.arctan((np.arange(pair.size[1]) - K[1, 2]) / K[1, 1])
+def owned_rays(camera: Camera, rays: torch.Tensor, rotation: np.ndarray, own_lo: float, own_hi: float) -> torch.Tensor:
+    """Bool (H, W): pixels of `camera` (unit `rays`, its `ray_grid`) whose ray is turned by an angle in
+    [own_lo, own_hi) about the x axis of the frame `rotation` (ego columns), from its z towards its y."""
+    R = torch.as_tensor(rotation.T @ camera.sensor_to_ego[:3, :3], dtype=rays.dtype)
+    q = rays @ R.T
+    angle = torch.atan2(q[..., 1], q[..., 2])
     return (angle >= own_lo) & (angle < own_hi)
 
 
@@ -312,5 +321,5 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
     return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
 
-__all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core", "owned_rows",
+__all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core", "owned_rays",
            "plan_pairs", "same_pose", "shared_turns", "tile_pair"]
