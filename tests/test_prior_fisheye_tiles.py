@@ -15,8 +15,10 @@ import numpy as np
 import pytest
 from stereo_scene import fisheye_pair, nuscenes_pair
 
+from sgde_plugin.cameras import Camera
 from sgde_plugin.errors import InputError
 from sgde_plugin.geometry import invert_transform, transform_points
+from sgde_plugin.rig import Rig
 from sgde_plugin.stereo.backproject import backprojection
 from sgde_plugin.stereo.evaluate import PriorEvaluator
 from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
@@ -55,6 +57,15 @@ def test_one_canvas_when_it_holds_the_shared_field():
     assert baseline_tiles(*nuscenes_pair(0.25), 60.0, 50.0) is None  # a pinhole pair: the `direct` canvas
     front, right = preset_cameras("urban-fisheye", 0.25)[:2]
     assert baseline_tiles(front, right, 60.0, 130.0) is None  # a limit wider than the field: one canvas
+
+
+def test_a_pair_that_cannot_be_rectified_gives_no_tiles():
+    front, right = fisheye_pair(96)
+    twin = Camera("T", front.intrinsics, front.sensor_to_ego.copy())  # the same centre: no baseline
+    assert baseline_tiles(front, twin, 60.0, 50.0) is None
+    rig = Rig(cameras=(front, twin, right), pairs=(("F", "T"), ("F", "R")), frames=())
+    plans = plan_pairs(rig, PriorConfig.from_settings(fisheye="tiled"))
+    assert {p.name for p in plans} == {"F|R"} and len(plans) == 3
 
 
 def test_an_unturned_tile_is_rectify_pair():

@@ -238,8 +238,12 @@ def baseline_tiles(
     (`max_elevation_deg` each side) is split into equal tiles, each a canvas centred on its own part: its
     rectified depth stays close to the distance from the baseline (the search range holds), and its sampling
     close to uniform. Each tile back-projects only what it owns (the outer tiles own everything beyond them);
-    its canvas reaches `overlap_deg` further for matching context. None when one canvas holds the field."""
-    turns = shared_turns(left, right, max_azimuth_deg)
+    its canvas reaches `overlap_deg` further for matching context. None when one canvas holds the field, or
+    when the pair cannot be rectified (shared centre, views along the baseline: `rectify_pair` says why not)."""
+    try:
+        turns = shared_turns(left, right, max_azimuth_deg)
+    except ValueError:
+        return None
     if turns.size == 0:
         return None
     step = math.radians(1.0)
