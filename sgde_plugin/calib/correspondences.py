@@ -54,6 +54,7 @@ class MatchConfig:
     cross_time: bool = True
     guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
     consensus_px: float = 1.5
+    mount_check_px: float = 0.0  # > 0: every observation pair keeps only matches within this of the pair's one mount
     guided_cross_time: bool = True
     temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
     guided: GuidedConfig = field(default_factory=GuidedConfig)
@@ -240,7 +241,7 @@ def find_correspondences(
             return _loftr_tentative(loftr, images, grids, cams, masks, a, b, t, t2, cfg)
     densify = _guided_densifier(feats, view_images, grids, cams, cfg) if loftr is None else None
     verified = _verify_all(cams, pairs, T, poses, match, cfg, timings, show_progress, densify)
-    if densify is not None:
+    if densify is not None or (feats is not None and cfg.mount_check_px > 0):
         t0 = time.perf_counter()
         verified = {(a, b): _consistent(cams[a], cams[b], verified[(a, b)], poses[a], poses[b], cfg)
                     for a, b in pairs}
@@ -564,10 +565,13 @@ def verify_observation_pair(ca: Camera, cb: Camera, t: int, t2: int, tent: Tenta
 
 def _consistent(ca: Camera, cb: Camera, verified: list[Verified], poses_a: np.ndarray, poses_b: np.ndarray,
                 cfg: MatchConfig) -> list[Verified]:
-    """Guided observation pairs keep only the matches that agree with one mount of the camera pair fitted
-    to all its verified matches (`outliers.mount_consensus`); their counts become those matches."""
+    """Guided observation pairs (with `cfg.mount_check_px` > 0 every one) keep only the matches that agree with
+    one mount of the camera pair fitted to all its verified matches (`outliers.mount_consensus`), within
+    `consensus_px` (guided) or `mount_check_px`; their counts become those matches. A free essential matrix per
+    observation pair also fits wrong matches of a narrow, wide-baseline strip that no rigid mount explains."""
     parts = [v for v in verified if v.part is not None]
-    if not any(v.guided for v in parts):
+    check_all = cfg.mount_check_px > 0
+    if not parts or not (check_all or any(v.guided for v in parts)):
         return verified
     rel0 = np.concatenate([np.repeat((np.linalg.inv(poses_b[v.pair.t2]) @ poses_a[v.pair.t])[None],
                                      v.part["ra"].shape[0], axis=0) for v in parts])
@@ -577,16 +581,16 @@ def _consistent(ca: Camera, cb: Camera, verified: list[Verified], poses_a: np.nd
     out, start = [], 0
     ends = {id(v): (start := start + v.part["ra"].shape[0]) for v in parts}
     for v in verified:
-        if v.part is None or not v.guided:
+        if v.part is None or not (v.guided or check_all):
             out.append(v)
             continue
         n = v.part["ra"].shape[0]
-        ok = np.abs(err[ends[id(v)] - n:ends[id(v)]]) <= cfg.consensus_px
+        ok = np.abs(err[ends[id(v)] - n:ends[id(v)]]) <= (cfg.consensus_px if v.guided else cfg.mount_check_px)
         k = int(ok.sum())
         inliers = k if v.pair.inliers <= n else int(round(v.pair.inliers * k / n))
         counts = replace(v.pair, inliers=inliers, kept=k if k >= cfg.min_per_view_pair else 0)
         part = {key: val[ok] for key, val in v.part.items()} if k >= cfg.min_per_view_pair else None
-        out.append(Verified(counts, part, True))
+        out.append(Verified(counts, part, v.guided))
     return out
 
 
