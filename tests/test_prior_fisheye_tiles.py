@@ -104,8 +104,8 @@ def test_turned_tiles_are_epipolar(turn_deg):
 
 def test_tiles_own_disjoint_parts_and_pinhole_plans_are_direct():
     fish = synth_sequence("urban-fisheye", 1, seed=3, scale=0.25).rig_true
-    tiled = plan_pairs(fish, PriorConfig.from_settings(fisheye="tiled"))
-    direct = plan_pairs(fish, PriorConfig())
+    tiled = plan_pairs(fish, PriorConfig())  # the default
+    direct = plan_pairs(fish, PriorConfig.from_settings(fisheye="direct"))
     assert len(direct) == 4 and len(tiled) == 12
     for k in range(4):  # each rig pair: its tiles back-project disjoint parts of each camera, together more
         plans = tiled[3 * k : 3 * k + 3]
@@ -118,7 +118,7 @@ def test_tiles_own_disjoint_parts_and_pinhole_plans_are_direct():
             whole = backprojection(fish.camera(p.left.camera), p.pair.rect_left, p.pair.baseline_m, p.pair.core_x)
             assert p.left.back.count < 0.95 * whole.count
     pin = synth_sequence("nuscenes", 1, seed=3, scale=0.2).rig_true
-    a, b = plan_pairs(pin, PriorConfig()), plan_pairs(pin, PriorConfig.from_settings(fisheye="tiled"))
+    a, b = plan_pairs(pin, PriorConfig.from_settings(fisheye="direct")), plan_pairs(pin, PriorConfig())
     assert [p.pair.size for p in a] == [p.pair.size for p in b]
     assert all(np.array_equal(p.left.back.index, q.left.back.index) for p, q in zip(a, b))
 
@@ -127,7 +127,8 @@ def test_tiled_is_a_setting():
     assert PriorConfig.from_settings(fisheye="tiled").geometry.fisheye == "tiled"
     with pytest.raises(InputError, match="fisheye"):
         PriorConfig.from_settings(fisheye="tiles")
-    assert PriorConfig().to_dict() != PriorConfig.from_settings(fisheye="tiled").to_dict()  # in the fingerprint
+    assert PriorConfig().geometry.fisheye == "tiled"  # the default
+    assert PriorConfig().to_dict() != PriorConfig.from_settings(fisheye="direct").to_dict()  # in the fingerprint
 
 
 def test_tiled_covers_more_of_the_fisheye_overlap_as_accurately():

@@ -59,7 +59,8 @@ SETTING_OPTIONS: list[tuple[str, str, str]] = [
     ("margin_px", "int", "rectified canvas margin, pixels (8)"),
     ("max_azimuth_deg", "float", "rectified canvas half-angle, degrees (60)"),
     ("max_elevation_deg", "float", "rectified canvas half-angle, degrees (50)"),
-    ("fisheye", "str", "fisheye path: direct (default) or virtual (via virtual pinholes)"),
+    ("fisheye", "str", "fisheye path: tiled (default: canvases turned about the baseline, as many as the "
+     "shared field needs), direct (one canvas per pair) or virtual (via virtual pinholes)"),
     ("confidence_disparity_px", "float", "confidence x d / (d + this): small disparities are less sure (2)"),
     ("edge_jump_px", "float", "confidence x jump / local disparity range beyond this, 0 = off (0)"),
     ("min_confidence", "float", "drop fused values less confident than this, 0-1 (0; real-camera presets 0.2)"),

@@ -96,9 +96,11 @@ class GeometrySettings:
     margin_px: int = 8
     max_azimuth_deg: float = 60.0  # rectified canvas half-angles (matter for fisheyes only; with `fisheye: tiled`,
     max_elevation_deg: float = 50.0  # the elevation one is each tile's, about the baseline)
-    fisheye: str = "direct"  # "direct": remap straight from the fisheye; "virtual": via virtual pinholes;
-    #                          "tiled": direct, into as many canvases turned about the baseline as the shared
-    #                          field needs (`planning.baseline_tiles`; pairs without a fisheye as "direct")
+    fisheye: str = "tiled"  # "tiled": remap straight from the fisheye into as many canvases turned about the
+    #                         baseline as the shared field needs (`planning.baseline_tiles`; pairs without a
+    #                         fisheye, and fisheye pairs one canvas holds, as "direct"); "direct": one canvas per
+    #                         pair (the field beyond +-max_elevation_deg about the baseline is not matched);
+    #                         "virtual": via virtual pinholes
 
 
 @dataclass(frozen=True)

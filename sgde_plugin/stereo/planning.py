@@ -30,6 +30,7 @@ from .rectify import (
     default_rim_px,
     rectified_rotation,
     rectify_pair,
+    rim_inner,
 )
 from .virtual import virtual_pinholes
 
@@ -135,7 +136,7 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
     With `fisheye: tiled`, a pair with a fisheye whose shared field reaches beyond `max_elevation_deg` about
     the baseline gives one plan per tile (`baseline_tiles`), each back-projecting only the field it owns."""
     geo = config.geometry
-    rays: dict[str, tuple] = {}
+    shared: dict = {}  # per-camera arrays made once for all the pairs: ray grids, rim masks
     plans = []
     for a, b in rig.pairs:
         cam_a, cam_b = rig.camera(a), rig.camera(b)
@@ -147,7 +148,7 @@ def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
                 src_b = facing_half(cam_b, cam_a)
         for pair, own in _rectified(src_a, src_b, config):
             orig_l, orig_r = (cam_a, cam_b) if pair.left is src_a else (cam_b, cam_a)
-            plans.append(_plan_pair(pair, orig_l, orig_r, own, config, rays))
+            plans.append(_plan_pair(pair, orig_l, orig_r, own, config, shared))
     return plans
 
 
@@ -175,15 +176,23 @@ def _rectified(
 
 def _plan_pair(
     pair: RectifiedPair, orig_l: Camera, orig_r: Camera, own: tuple[float, float] | None, config: PriorConfig,
-    rays: dict,
+    shared: dict,
 ) -> PairPlan:
     """Warp maps, canvas masks and backward maps of one rectified pair; `own`: the turns about the baseline
     whose original pixels it back-projects (None = all)."""
     border = config.sgbm.block_size // 2 + config.filters.border_px
     origs, pres, rects = (orig_l, orig_r), [], []
+
+    def warp_maps(src: Camera, dst: Camera) -> WarpMaps:
+        rim = default_rim_px(src)
+        key = ("rim", src.name, rim)  # the source's rim mask, shared by all the warps from it
+        if rim > 0 and key not in shared:
+            shared[key] = rim_inner(src, rim)
+        return WarpMaps.between(src, dst, rim, inner=shared.get(key))
+
     for src, rect, orig in zip((pair.left, pair.right), (pair.rect_left, pair.rect_right), origs):
-        pres.append(None if src is orig else WarpMaps.between(orig, src, default_rim_px(orig)))
-        rects.append(WarpMaps.between(src, rect, default_rim_px(src)))
+        pres.append(None if src is orig else warp_maps(orig, src))
+        rects.append(warp_maps(src, rect))
     valid = [_side_valid(p, r) for p, r in zip(pres, rects)]
     inner = [inner_core(v, border) for v in valid]
     possible = _possible(pair, *inner)
@@ -192,9 +201,9 @@ def _plan_pair(
     for orig, pre, warp, seen, rect, can, core in zip(
         origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible, inner
     ):
-        if orig.name not in rays:
-            rays[orig.name] = orig.intrinsics.ray_grid()
-        grid, ok = rays[orig.name]
+        if ("rays", orig.name) not in shared:
+            shared[("rays", orig.name)] = orig.intrinsics.ray_grid()
+        grid, ok = shared[("rays", orig.name)]
         if own is not None:
             ok = ok & owned_rays(orig, grid, rectified_rotation(pair.left, pair.right), *own)
         back = backprojection(orig, rect, pair.baseline_m, pair.core_x, grid, ok, possible=can)

@@ -35,7 +35,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "synthetic": {},
     "nuscenes": {"max_depth": 80.0, **REAL_CAMERAS},
     "ddad": {"max_depth": 200.0, **REAL_CAMERAS},
-    "fisheye": {"fisheye": "direct", "ground_depth_ratio": 0.0},
+    "fisheye": {"fisheye": "tiled", "ground_depth_ratio": 0.0},
 }
 PRESET_KEY = "preset"
 MATCHER_DEPENDENT = (*MATCHER_DEFAULTS, "matcher_flow_output", "matcher_iters")

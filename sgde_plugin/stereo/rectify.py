@@ -207,14 +207,25 @@ def _rectify_pair(
     )
 
 
+def rim_inner(src: Camera, rim_px: int) -> np.ndarray | None:
+    """uint8 (H, W) of `src`: its valid area eroded by `rim_px` (the fisheye rim left out); None if rim_px <= 0."""
+    if rim_px <= 0:
+        return None
+    with torch_threads(1):
+        src_valid = src.intrinsics.valid_mask().astype(np.uint8)
+    kernel = np.ones((2 * rim_px + 1, 2 * rim_px + 1), np.uint8)
+    return cv2.erode(src_valid, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+
+
 def camera_maps(
-    src: Camera, dst: Camera, rim_px: int = 0, dtype: torch.dtype = torch.float64
+    src: Camera, dst: Camera, rim_px: int = 0, dtype: torch.dtype = torch.float64, inner: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Remap maps (float32 x, y) sampling `src` for every pixel of `dst`, and their validity.
 
     Both cameras are taken to share an optical centre (rectified or virtual cameras): only the
     rotation between them matters. With `rim_px` > 0, source pixels closer than that to the
-    border of the source's valid area (the fisheye rim) count as invalid.
+    border of the source's valid area (the fisheye rim) count as invalid; `inner` may pass
+    `rim_inner(src, rim_px)` computed once for several warps of the same source.
     """
     with torch_threads(1):
         rays, ok = dst.intrinsics.ray_grid(dtype)
@@ -225,10 +236,8 @@ def camera_maps(
     map_y = uv[..., 1].numpy().astype(np.float32)
     valid = valid.numpy()
     if rim_px > 0:
-        with torch_threads(1):
-            src_valid = src.intrinsics.valid_mask().astype(np.uint8)
-        kernel = np.ones((2 * rim_px + 1, 2 * rim_px + 1), np.uint8)
-        inner = cv2.erode(src_valid, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        if inner is None:
+            inner = rim_inner(src, rim_px)
         iu = np.clip(np.rint(map_x), 0, src.width - 1).astype(np.intp)
         iv = np.clip(np.rint(map_y), 0, src.height - 1).astype(np.intp)
         valid &= inner[iv, iu] > 0
@@ -250,9 +259,9 @@ class WarpMaps:
     box: tuple[slice, slice] = (slice(0, 0), slice(0, 0))
 
     @classmethod
-    def between(cls, src: Camera, dst: Camera, rim_px: int = 0) -> WarpMaps:
-        """Maps sampling `src` for every pixel of `dst` (shared optical centre)."""
-        map_x, map_y, valid = camera_maps(src, dst, rim_px)
+    def between(cls, src: Camera, dst: Camera, rim_px: int = 0, inner: np.ndarray | None = None) -> WarpMaps:
+        """Maps sampling `src` for every pixel of `dst` (shared optical centre; `inner`: see `camera_maps`)."""
+        map_x, map_y, valid = camera_maps(src, dst, rim_px, inner=inner)
         rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
         box = (slice(0, 0), slice(0, 0)) if rows.size == 0 else (
             slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
