@@ -22,8 +22,8 @@ from sgde_plugin.rig import Rig
 from sgde_plugin.stereo.backproject import backprojection
 from sgde_plugin.stereo.evaluate import PriorEvaluator
 from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
-from sgde_plugin.stereo.planning import baseline_tiles, plan_pairs, shared_turns, tile_pair
-from sgde_plugin.stereo.rectify import rectify_pair, torch_threads
+from sgde_plugin.stereo.planning import baseline_tiles, plan_pairs, shared_turns
+from sgde_plugin.stereo.rectify import rectify_pair, tile_pair, torch_threads
 from sgde_plugin.synth.presets import preset_cameras
 from sgde_plugin.synth.sequence import synth_sequence
 

@@ -28,7 +28,7 @@ def shift_maps(disp: np.ndarray, sign: int, x0: int = 0) -> tuple[np.ndarray, np
 
 
 def masked_median(values: np.ndarray, mask: np.ndarray) -> float:
-    """`np.median(values[mask])` (0 when `mask` is empty), with one partition instead of two."""
+    """`np.median(values[mask])` of a float array (0 when `mask` is empty), with one partition instead of two."""
     x = values[mask]
     n = x.size
     if n == 0:

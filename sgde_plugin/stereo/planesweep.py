@@ -32,7 +32,14 @@ from ..rig import Rig
 from .backproject import BackProjection, backprojection
 from .checks import match_box
 from .config import PriorConfig
-from .filters import discontinuity_factor, grey_float, normalize_image, remove_islands, window_scores
+from .filters import (
+    discontinuity_factor,
+    grey_float,
+    masked_median,
+    normalize_image,
+    remove_islands,
+    window_scores,
+)
 from .planning import facing_half, ground_disparity
 from .rectify import WarpMaps, default_rim_px, torch_threads
 
@@ -350,7 +357,7 @@ def _photometric_confidence(plan: SweepPlan, k: int, views: list[tuple[np.ndarra
     # checked matches; the unchecked pixels of a sweep are mostly wrong and bias it by tens of grey levels)
     ncc, _, _ = window_scores(a, warped, ok, window, _MIN_STD)
     sure = ok & (ncc > f.min_zncc)
-    offset = float(np.median((a - warped)[sure])) if sure.any() else 0.0
+    offset = masked_median(a - warped, sure)
     ncc, mad, texture = window_scores(a, warped, ok, window, _MIN_STD, offset)
     conf = np.clip((ncc - f.min_zncc) / (1 - f.min_zncc), 0, 1) * np.clip(1 - mad / f.max_abs_diff, 0, 1)
     if f.min_texture > 0:  # rows without x-structure are ambiguous

@@ -14,23 +14,20 @@ import cv2
 import numpy as np
 import torch
 
-from ..cameras import Camera, Pinhole
+from ..cameras import Camera
 from ..geometry import rotation_vector
 from ..pairs import left_right
 from ..rig import Rig
 from .backproject import BackProjection, backprojection
 from .config import PriorConfig
 from .rectify import (
-    DISPARITY_STEP,
     RectifiedPair,
     WarpMaps,
-    _camera_resolution,
-    _rows,
-    _shared_sector,
     default_rim_px,
     rectified_rotation,
     rectify_pair,
     rim_inner,
+    tile_pair,
 )
 from .virtual import virtual_pinholes
 
@@ -214,12 +211,6 @@ def _plan_pair(
     return PairPlan(pair, sides[0], sides[1])
 
 
-def _turn_about_x(angle: float) -> np.ndarray:
-    """Columns of a frame turned by `angle` about x (the baseline), in the old frame: z turns towards +y (down)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
-
-
 def shared_turns(left: Camera, right: Camera, max_azimuth_deg: float, step_deg: float = 1.0) -> np.ndarray:
     """Angles (radians, increasing) about the baseline at which both cameras see some direction at infinity.
 
@@ -272,38 +263,6 @@ def baseline_tiles(
     return tiles
 
 
-def tile_pair(
-    cam_a: Camera, cam_b: Camera, turn: float, half_angle: float, scale: float, min_depth: float, margin_px: int,
-    max_azimuth_deg: float, samples: int = 241, name: str = "",
-) -> RectifiedPair | None:
-    """`rectify_pair`'s geometry with the rectified frame turned by `turn` (radians, + down) about the baseline
-    and the canvas holding the shared field within `half_angle` of that direction; None if there is none."""
-    left, right = left_right(cam_a, cam_b)
-    R = rectified_rotation(left, right) @ _turn_about_x(turn)
-    baseline = float(np.linalg.norm(right.sensor_to_ego[:3, 3] - left.sensor_to_ego[:3, 3]))
-    az = math.radians(max_azimuth_deg)
-    box = _shared_sector(left, right, R, az, half_angle, samples)
-    if box is None:
-        return None
-    a0, a1, b0, b1, widest = box
-    step_a = 2 * math.tan(az) / (samples - 1)
-    step_b = 2 * math.tan(half_angle) / (_rows(samples, az, half_angle) - 1)
-    a0, a1, b0, b1 = a0 - step_a, a1 + step_a, b0 - step_b, b1 + step_b
-    f = scale * 0.5 * (_camera_resolution(left, R) + _camera_resolution(right, R))
-    d_geom = f * (widest + 2 * step_a) + margin_px
-    max_disp = int(math.ceil(max(min(f * baseline / min_depth, d_geom), 1.0) / DISPARITY_STEP) * DISPARITY_STEP)
-    core_w = int(math.ceil(f * (a1 - a0))) + 2 * margin_px
-    height = int(math.ceil(f * (b1 - b0))) + 2 * margin_px
-    K = np.array([[f, 0.0, max_disp + margin_px - f * a0], [0.0, f, margin_px - f * b0], [0.0, 0.0, 1.0]])
-    model = Pinhole(core_w + 2 * max_disp, height, K, None)
-    cams = []
-    for cam, side in ((left, "L"), (right, "R")):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, cam.sensor_to_ego[:3, 3]
-        cams.append(Camera(f"{left.name}|{right.name}@{name}#{side}", model, T))
-    return RectifiedPair(left, right, cams[0], cams[1], baseline, max_disp, (max_disp, max_disp + core_w))
-
-
 def owned_rays(camera: Camera, rays: torch.Tensor, rotation: np.ndarray, own_lo: float, own_hi: float) -> torch.Tensor:
     """Bool (H, W): pixels of `camera` (unit `rays`, its `ray_grid`) whose ray is turned by an angle in
     [own_lo, own_hi) about the x axis of the frame `rotation` (ego columns), from its z towards its y."""
@@ -335,4 +294,4 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
 
 
 __all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core", "owned_rays",
-           "plan_pairs", "same_pose", "shared_turns", "tile_pair"]
+           "plan_pairs", "same_pose", "shared_turns"]

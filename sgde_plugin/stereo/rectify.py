@@ -156,24 +156,44 @@ def rectify_pair(
     possible disparity of the shared sector), rounded up to a multiple of 16.
     """
     with torch_threads(1):
-        return _rectify_pair(cam_a, cam_b, scale, min_depth, margin_px, max_azimuth_deg, max_elevation_deg, samples)
+        return _rectify_pair(cam_a, cam_b, scale, min_depth, margin_px, math.radians(max_azimuth_deg),
+                             math.radians(max_elevation_deg), samples)
+
+
+def tile_pair(
+    cam_a: Camera, cam_b: Camera, turn: float, half_angle: float, scale: float, min_depth: float, margin_px: int,
+    max_azimuth_deg: float, samples: int = 241, name: str = "",
+) -> RectifiedPair | None:
+    """`rectify_pair` with the rectified frame turned by `turn` (radians, + down) about the baseline and the
+    canvas holding the shared field within `half_angle` (radians) of that direction; None if there is none.
+    Its cameras are named `L|R@name#L` and `#R`."""
+    with torch_threads(1):
+        return _rectify_pair(cam_a, cam_b, scale, min_depth, margin_px, math.radians(max_azimuth_deg), half_angle,
+                             samples, turn, f"@{name}")
+
+
+def _turn_about_x(angle: float) -> np.ndarray:
+    """Columns of a frame turned by `angle` about x (the baseline), in the old frame: z turns towards +y (down)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
 
 
 def _rectify_pair(
-    cam_a: Camera, cam_b: Camera, scale: float, min_depth: float, margin_px: int, max_azimuth_deg: float,
-    max_elevation_deg: float, samples: int,
+    cam_a: Camera, cam_b: Camera, scale: float, min_depth: float, margin_px: int, az: float, el: float,
+    samples: int, turn: float | None = None, tag: str = "",
 ) -> RectifiedPair | None:
     left, right = left_right(cam_a, cam_b)
     try:
         R = rectified_rotation(left, right)
     except ValueError:  # co-located, or looking along the baseline: no stereo from this pair
         return None
+    if turn is not None:
+        R = R @ _turn_about_x(turn)
     baseline = float(np.linalg.norm(right.sensor_to_ego[:3, 3] - left.sensor_to_ego[:3, 3]))
-    box = _shared_sector(left, right, R, math.radians(max_azimuth_deg), math.radians(max_elevation_deg), samples)
+    box = _shared_sector(left, right, R, az, el, samples)
     if box is None:
         return None
     a0, a1, b0, b1, widest = box
-    az, el = math.radians(max_azimuth_deg), math.radians(max_elevation_deg)
     step_a = 2 * math.tan(az) / (samples - 1)
     step_b = 2 * math.tan(el) / (_rows(samples, az, el) - 1)
     a0, a1 = a0 - step_a, a1 + step_a  # the sampled box is one sample short of the true edge
@@ -199,8 +219,8 @@ def _rectify_pair(
     return RectifiedPair(
         left=left,
         right=right,
-        rect_left=Camera(f"{left.name}|{right.name}#L", model, pose(left)),
-        rect_right=Camera(f"{left.name}|{right.name}#R", model, pose(right)),
+        rect_left=Camera(f"{left.name}|{right.name}{tag}#L", model, pose(left)),
+        rect_right=Camera(f"{left.name}|{right.name}{tag}#R", model, pose(right)),
         baseline_m=baseline,
         max_disparity=max_disp,
         core_x=(max_disp, max_disp + core_w),
