@@ -97,7 +97,7 @@ def check_pair(m: MatchedPair, config: PriorConfig) -> tuple[np.ndarray, np.ndar
         box = boxes[k]
         if box is not None:
             a, b, x0, (d, c) = _box_view(canvases[k], canvases[1 - k], m.x0, box, rows.start, disps[k], confs[k])
-            _photometric(a, b, x0, d, c, sign, cfg)  # c is a view into confs[k]: scaled in place
+            _photometric(a, b, x0, d, c, sign, cfg, (box[0].start, box[1].start))  # c: a view, scaled in place
     return disps[0], confs[0], disps[1], confs[1]
 
 
@@ -113,14 +113,15 @@ def _box_view(
 
 
 def _photometric(
-    a: np.ndarray, b: np.ndarray, x0: int, disp: np.ndarray, conf: np.ndarray, sign: int, config: PriorConfig
+    a: np.ndarray, b: np.ndarray, x0: int, disp: np.ndarray, conf: np.ndarray, sign: int, config: PriorConfig,
+    origin: tuple[int, int] = (0, 0),
 ) -> None:
     """Scale `conf` in place by the photometric checks after the per-pixel shift (they catch consistent but
     wrong matches, e.g. of points whose true match has left the other image), the small-disparity factor,
     the optional discontinuity factor, and drop small islands."""
     cfg = config
     t, mad_max = cfg.filters.min_zncc, cfg.filters.max_abs_diff
-    ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0)
+    ncc, mad, texture = photometric_scores(a, b, disp, conf > 0, sign, x0, origin=origin)
     conf *= np.clip((ncc - t) / (1 - t), 0, 1) * np.clip(1 - mad / mad_max, 0, 1)
     if cfg.filters.min_texture > 0:  # rows without x-structure are ambiguous
         conf *= np.clip(texture / cfg.filters.min_texture - 1, 0, 1)

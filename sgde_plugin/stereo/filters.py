@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 _DX = np.array([[-0.5, 0.0, 0.5]], np.float32)
+_MEDIAN_SAMPLES = 2500  # the brightness offset is taken on every second row and column from this many pixels on
 
 
 def grey_float(image: np.ndarray) -> np.ndarray:
@@ -83,31 +84,35 @@ def refine_disparity(
 
 def photometric_scores(
     a: np.ndarray, b: np.ndarray, disp: np.ndarray, valid: np.ndarray, sign: int, x0: int = 0,
-    window: int = 7, min_std: float = 2.0,
+    window: int = 7, min_std: float = 2.0, origin: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Windowed ZNCC, mean absolute difference and texture of reference `a` against `b` warped by `disp`.
 
     `b` is sampled at canvas column x0 + j + sign * d (bilinear), so a slanted surface is compared
     after its own per-pixel shift. The absolute difference is taken after removing the pair's
-    global brightness offset (median over `valid`), so differently exposed cameras are not
-    penalised. ZNCC is -1 where either patch is flat (std below `min_std` grey levels). Texture is
-    the RMS horizontal gradient of `a` in the window (grey levels per pixel).
+    global brightness offset (median over `valid`; where that holds 4 x 2,500 pixels or more, over
+    every second row and column counted from `origin`, the (row, column) of a's first pixel in the map
+    it was cut from, so that a cut-out gives the whole map's offset), so differently exposed cameras
+    are not penalised. ZNCC is -1 where either patch is flat (std below `min_std` grey levels).
+    Texture is the RMS horizontal gradient of `a` in the window (grey levels per pixel).
     """
     map_x, map_y = shift_maps(disp, sign, x0)
     bw = cv2.remap(b, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return window_scores(a, bw, valid, window, min_std)
+    return window_scores(a, bw, valid, window, min_std, origin=origin)
 
 
 def window_scores(
     a: np.ndarray, bw: np.ndarray, valid: np.ndarray, window: int = 7, min_std: float = 2.0,
-    offset: float | None = None,
+    offset: float | None = None, origin: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`photometric_scores` of reference `a` against `bw`, the other image already warped onto it
-    (`offset`: the brightness offset to remove; None = the median of a - bw over `valid`)."""
+    (`offset`: the brightness offset to remove; None = the median of a - bw over `valid` as there)."""
     box = (window, window)
     e = a - bw
-    if offset is None:
-        offset = masked_median(e, valid)
+    if offset is None:  # a quarter of many pixels gives the same median to a small fraction of a grey level
+        r, c = -origin[0] % 2, -origin[1] % 2
+        few = np.count_nonzero(valid[r::2, c::2]) < _MEDIAN_SAMPLES
+        offset = masked_median(e, valid) if few else masked_median(e[r::2, c::2], valid[r::2, c::2])
     mad = cv2.blur(np.abs(e - offset), box)
     ma, mb = cv2.blur(a, box), cv2.blur(bw, box)
     va = cv2.blur(a * a, box) - ma * ma

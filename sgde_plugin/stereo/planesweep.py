@@ -355,7 +355,7 @@ def _photometric_confidence(plan: SweepPlan, k: int, views: list[tuple[np.ndarra
     warped = cv2.remap(views[1 - k][0], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     # the brightness offset, from the matches that pass the ZNCC check (the rectified path takes it from its
     # checked matches; the unchecked pixels of a sweep are mostly wrong and bias it by tens of grey levels)
-    ncc, _, _ = window_scores(a, warped, ok, window, _MIN_STD)
+    ncc, _, _ = window_scores(a, warped, ok, window, _MIN_STD, offset=0.0)  # only the ZNCC is used here
     sure = ok & (ncc > f.min_zncc)
     offset = masked_median(a - warped, sure)
     ncc, mad, texture = window_scores(a, warped, ok, window, _MIN_STD, offset)
