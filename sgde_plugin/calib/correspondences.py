@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 
 import cv2
 import numpy as np
@@ -13,6 +13,7 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..progress import progress
+from .dense_pairs import DenseConfig, frame_matches, same_orientation_view
 from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_descriptors, sift_features, to_gray
 from .guided import GuidedConfig, guided_search
 from .outliers import epipolar_angle_deg, essential_inliers, mount_consensus
@@ -63,11 +64,13 @@ class MatchConfig:
     # on when the rig has a non-pinhole camera (`refines_keypoints`)
     refine: bool | str = "auto"
     refinement: RefineConfig = field(default_factory=RefineConfig)
+    # dense same-frame correspondences in each pair's overlap (`dense_pairs.py`; off by default)
+    dense: DenseConfig = field(default_factory=DenseConfig)
     seed: int = 0
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
-        return {k: (vars(v) if is_dataclass(v := getattr(self, k)) else v) for k in self.__dataclass_fields__}
+        return {k: (asdict(v) if is_dataclass(v := getattr(self, k)) else v) for k in self.__dataclass_fields__}
 
 
 def refines_keypoints(cfg: MatchConfig, cameras: Sequence[Camera]) -> bool:
@@ -246,10 +249,60 @@ def find_correspondences(
         verified = {(a, b): _consistent(cams[a], cams[b], verified[(a, b)], poses[a], poses[b], cfg)
                     for a, b in pairs}
         timings.add("ransac", t0)
+    if feats is not None and cfg.dense.enabled:
+        verified = _with_dense(cams, pairs, poses, verified, view_images, images, masks, cfg, timings)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
     if feats is not None:
         out = _refine_and_link(out, feats, view_images, cams, poses, cfg, T, timings)
     return out
+
+
+def _with_dense(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], poses: dict[str, np.ndarray],
+                verified: dict[tuple[str, str], list[Verified]], view_images: dict, images: _ImageCache,
+                masks: dict[str, np.ndarray] | None, cfg: MatchConfig, timings: Timings
+                ) -> dict[tuple[str, str], list[Verified]]:
+    """Each same-frame observation pair with the verified dense matches of its overlap added (`dense_pairs`)."""
+    rng = np.random.default_rng(cfg.seed + 1)
+    vcfg = replace(cfg, max_per_view_pair=cfg.dense.max_per_frame, ransac_threshold_px=cfg.dense.ransac_threshold_px)
+    interpolation = VIEW_INTERPOLATIONS[cfg.view_interpolation]
+    out = dict(verified)
+    for a, b in pairs:
+        first = view_images.get((0, a, b))
+        if first is None:
+            continue
+        t0 = time.perf_counter()
+        view_b = same_orientation_view(first.view, cams[b])
+        mask_b = None if masks is None or b not in masks else np.asarray(masks[b], bool)
+        merged = []
+        for v in verified[(a, b)]:
+            t = v.pair.t
+            if t != v.pair.t2 or (t, a, b) not in view_images:
+                merged.append(v)
+                continue
+            va = view_images[(t, a, b)]
+            uv_a, uv_b = frame_matches(cams[a], cams[b], va.view, va.gray, va.usable, view_b, images(t, b), mask_b,
+                                       interpolation, cfg.dense)
+            timings.add("matching", t0)
+            t0 = time.perf_counter()
+            sig, kp = np.full(len(uv_a), cfg.dense.sigma_px), np.full(len(uv_a), -1)
+            dense = verify_observation_pair(cams[a], cams[b], t, t, Tentative(uv_a, uv_b, sig, sig, kp, kp),
+                                            _rel(poses, a, b, t, t), vcfg, rng)
+            merged.append(_merged(v, dense))
+            timings.add("ransac", t0)
+            t0 = time.perf_counter()
+        out[(a, b)] = merged
+    return out
+
+
+def _merged(v: Verified, dense: Verified) -> Verified:
+    """One observation pair's verified matches with its dense ones added (counts summed)."""
+    if dense.part is None:
+        return v
+    p, d = v.pair, dense.pair
+    counts = replace(p, tentative=p.tentative + d.tentative, gated=p.gated + d.gated, inliers=p.inliers + d.inliers,
+                     kept=p.kept + d.kept)
+    part = dense.part if v.part is None else {k: np.concatenate([v.part[k], dense.part[k]]) for k in v.part}
+    return Verified(counts, part, v.guided)
 
 
 def _refine_and_link(out: list[PairMatches], feats: dict, view_images: dict, cams: dict[str, Camera],

@@ -226,6 +226,8 @@ def _setup(
     if loftr_weights is not None:
         mcfg = replace(mcfg, loftr_weights=str(loftr_weights))
     acfg = replace(adjust_config or AdjustConfig(), max_iterations=rules.max_iterations)
+    if mcfg.dense.enabled:  # dense same-frame matches made the focal refinement adopt wrong scales (issue #17, s. 10)
+        acfg = replace(acfg, refine_focal=False)
     masks = {c: m for c in rig.camera_names if (m := rig.load_mask(c)) is not None}
     return Setup(method, matcher, tuple(selected), window, rules, mcfg, acfg, ref, images or rig.load_image, masks,
                  timings or Timings(), show_progress, match_cache, list(rig.pairs))
