@@ -6,8 +6,7 @@ intrinsics of camera a's view aimed at their overlap (`views.overlap_view`, the 
 is `stereo.rectify.camera_maps`), so that the two views differ only by the parallax of the baseline and the
 starting rig's error. Points on a regular grid of a's view where both views have data and the texture is strong
 are found in b's view by DIS optical flow (both ways, a forward-backward check) refined by Lucas-Kanade (checked
-back again), on the box of the shared area with the views' empty pixels filled; optionally (`search`) the points
-the flow missed are searched along their epipolar segments (`guided.guided_search`). They are mapped to both
+back again), on the box of the shared area with the views' empty pixels filled. They are mapped to both
 cameras' pixels; each frame's set is verified like any other observation pair
 (`correspondences.verify_observation_pair`) and joins the frame's SIFT matches as two-view points with their own
 sigma (`DenseConfig.sigma_px`). The matching does not need the start to be accurate: the views only have to
@@ -16,7 +15,7 @@ overlap, the positions come from the images.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -24,7 +23,6 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..stereo.rectify import camera_maps, default_rim_px
 from .features import to_gray
-from .guided import GuidedConfig, guided_search
 from .views import VirtualView
 
 
@@ -45,10 +43,6 @@ class DenseConfig:
     ransac_threshold_px: float = 1.0
     margin_px: int = 96  # the flow runs on the box of the views' shared area grown by this
     fill: bool = True  # unusable pixels set to the usable ones' mean before the flow
-    # every other grid point the flow missed is searched along its epipolar segment (narrow overlaps, large
-    # parallax; measured 2-3x the time of the flow at full resolution)
-    search: bool = False
-    guided: GuidedConfig = field(default_factory=GuidedConfig)
 
 
 def same_orientation_view(view_a: VirtualView, cam_b: Camera) -> VirtualView:
@@ -107,22 +101,6 @@ def _lands(uv: np.ndarray, usable: np.ndarray, r: int) -> np.ndarray:
     return ok
 
 
-def search_rest(gray_a: np.ndarray, usable_a: np.ndarray, gray_b: np.ndarray, usable_b: np.ndarray, pts: np.ndarray,
-                rel: np.ndarray, K: np.ndarray, cfg: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Points the flow missed (a parallax beyond its reach, a narrow strip): searched along their epipolar
-    segments of the starting rig (`guided.guided_search`, `rel`: view a -> view b), then checked back by
-    Lucas-Kanade; (indices into pts found, positions in b)."""
-    idx, pos = guided_search(gray_a, usable_a, gray_b, usable_b, pts.astype(np.float64), K, K, rel, cfg.guided)
-    if idx.size == 0:
-        return idx, pos
-    lk = {"winSize": (cfg.window_px, cfg.window_px), "maxLevel": 0, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW,
-          "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
-    start = pts[idx].astype(np.float32)
-    back, st, _ = cv2.calcOpticalFlowPyrLK(gray_b, gray_a, pos.astype(np.float32), start.copy(), **lk)
-    ok = (st.ravel() == 1) & (np.linalg.norm(back - start, axis=1) <= cfg.fb_px) & _lands(pos, usable_b, 1)
-    return idx[ok], pos[ok]
-
-
 def _filled(gray: np.ndarray, usable: np.ndarray, cfg: DenseConfig) -> np.ndarray:
     """A view image with its unusable pixels set to the mean of the usable ones (`cfg.fill`): the edge of a
     view's data is no texture of the scene, and it sits at different places in the two views."""
@@ -153,11 +131,6 @@ def frame_matches(cam_a: Camera, cam_b: Camera, view_a: VirtualView, gray_a: np.
     ok, pb = track(_filled(gray_a[box], usable_a[box], cfg), _filled(gray_b[box], usable_b[box], cfg), pts,
                    usable_b[box], cfg)
     pa, pb = pts[ok] + corner, pb[ok] + corner
-    if cfg.search:
-        rel = np.linalg.inv(view_b.camera.sensor_to_ego) @ view_a.camera.sensor_to_ego
-        rest = pts[~ok][::2] + corner
-        idx, found = search_rest(gray_a, usable_a, gray_b, usable_b, rest, rel, view_a.camera.intrinsics.K, cfg)
-        pa, pb = np.concatenate([pa, rest[idx]]), np.concatenate([pb, found])
     uv_a, ok_a = cam_a.intrinsics.project(view_a.rays_in_source(pa))
     uv_b, ok_b = cam_b.intrinsics.project(view_b.rays_in_source(pb))
     ok = ok_a & ok_b
