@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import os
 import platform
 import sys
@@ -41,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--peer", choices=("colmap",), default=None,
                         help="calibrate: GLC against COLMAP's rig bundle adjustment on the presets and random rigs "
                              "(needs the extra `peer`: pycolmap)")
+    parser.add_argument("--scale", type=float, default=None, metavar="F",
+                        help="calibrate --peer only: render scale of the accuracy table's rigs (default 0.5; 1 = "
+                             "each rig's own size, about 4x the time)")
     parser.add_argument("--supervision", choices=("lidar", "self"), default="lidar",
                         help="train-effect: LiDAR-like supervision (default) or self-supervised view synthesis")
     parser.add_argument("--rig", action="append", default=[], metavar="RIG.json",
@@ -100,6 +104,11 @@ def run(args: argparse.Namespace) -> int:
                         ("--masks", args.masks)):
         if value:
             raise InputError(None, flag, "only `sgde bench real DIR` takes this option")
+    scale = getattr(args, "scale", None)
+    if scale is not None and (not getattr(args, "peer", None) or args.names != ["calibrate"]):
+        raise InputError(None, "--scale", "only `sgde bench calibrate --peer colmap` takes this option")
+    if scale is not None and not (math.isfinite(scale) and 0.05 <= scale <= 2.0):
+        raise InputError(None, "--scale", f"must be a number from 0.05 to 2, got {scale}")
     names = args.names or [n for n in BENCHMARKS if not (args.fast and n in SLOW)]
     for n in names:
         if n not in BENCHMARKS:
@@ -113,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
             module = importlib.import_module(f"sgde_plugin.benchmarks.{BENCHMARKS[n]}")
             options = {"supervision": args.supervision} if n == "train-effect" else {}
             if n == "calibrate" and getattr(args, "peer", None):
-                options = {"peer": args.peer}
+                options = {"peer": args.peer, **({"scale": scale} if scale is not None else {})}
             result = module.run(fast=args.fast, **options)
         except ModuleNotFoundError as exc:
             result = {"error": f"not available: {exc}"}
