@@ -94,12 +94,8 @@ def machine_description() -> dict:
     }
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the named (or all) benchmarks, print each result, optionally write the JSON."""
-    from ..io import atomic_write_text
-
-    if args.names[:1] == ["real"]:
-        return run_real_bench(args)
+def _checked_options(args: argparse.Namespace) -> float | None:
+    """Refuse the options that the named benchmarks do not take; the accuracy table's scale (None: default)."""
     for flag, value in (("--rig", args.rig), ("--preset", args.preset), ("--config", args.config),
                         ("--masks", args.masks)):
         if value:
@@ -109,6 +105,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, "--scale", "only `sgde bench calibrate --peer colmap` takes this option")
     if scale is not None and not (math.isfinite(scale) and 0.05 <= scale <= 2.0):
         raise InputError(None, "--scale", f"must be a number from 0.05 to 2, got {scale}")
+    return scale
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the named (or all) benchmarks, print each result, optionally write the JSON."""
+    from ..io import atomic_write_text
+
+    if args.names[:1] == ["real"]:
+        return run_real_bench(args)
+    scale = _checked_options(args)
     names = args.names or [n for n in BENCHMARKS if not (args.fast and n in SLOW)]
     for n in names:
         if n not in BENCHMARKS:
