@@ -1,4 +1,5 @@
-"""`sgde bench calibrate --peer colmap --scale F`: the render scale reaches the rigs; bad use is refused."""
+"""`sgde bench calibrate --peer colmap [--scale F]`: the render scale reaches the rigs, bad use is refused, the
+peer is left out where its model does not hold."""
 
 from __future__ import annotations
 
@@ -21,6 +22,12 @@ def test_scale_reaches_the_rendered_rigs(monkeypatch: pytest.MonkeyPatch) -> Non
     assert seen == [0.125] and row["scale"] == 0.125
     # the start's error is measured against the truth of the same render
     assert 0.3 < row["input"]["rotation_median_deg"] < 3.0
+
+
+def test_peer_is_skipped_on_sequential_capture() -> None:
+    row = bench_calibrate._accuracy_row("nuscenes", 0, "sequential", "colmap", glc=False, frames=1, scale=0.125)
+    assert "sequential capture" in row["colmap"]["skipped"]
+    assert "rotation_median_deg" not in row["colmap"]
 
 
 def test_cli_passes_the_scale(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
