@@ -30,6 +30,12 @@ def test_peer_is_skipped_on_sequential_capture() -> None:
     assert "rotation_median_deg" not in row["colmap"]
 
 
+def test_peer_is_skipped_on_cameras_colmap_cannot_model() -> None:
+    pytest.importorskip("pycolmap")
+    row = bench_calibrate._accuracy_row("urban-fisheye", 0, "sync", "colmap", glc=False, frames=1, scale=0.125)
+    assert "no COLMAP equivalent" in row["colmap"]["skipped"]
+
+
 def test_cli_passes_the_scale(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture) -> None:
     calls: list[tuple] = []
     monkeypatch.setattr(bench_calibrate, "accuracy",

@@ -35,13 +35,14 @@ from typing import Any
 import numpy as np
 
 from ..calib import MatchConfig, Timings, calibrate
+from ..errors import InputError
 from ..pairs import relative_pose_errors
 from ..rig import Rig
 from ..stereo.evaluate import evaluate_priors
 from ..stereo.pipeline import PriorBuilder, PriorConfig
 from ..synth.sequence import SynthSequence, synth_sequence
 from ..tables import markdown_table
-from .colmap_peer import calibrate_colmap
+from .colmap_peer import calibrate_colmap, colmap_camera
 from .ring_truth import ring_truth
 
 METHOD_ORDER = ("none", "pairwise", "wo-glc", "glc")
@@ -124,9 +125,9 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
     row["input"] = _pose_errors(seq.rig, seq.rig_true)
     if preset == "random":  # which pairs the world lets link (the truth, to judge the rejections)
         row["ring_truth"] = ring_truth(seq)
-    if peer == "colmap" and capture != "sync":
-        # COLMAP's rig frame has one pose for all its images; cameras fired at other times do not fit that model
-        row["colmap"] = {"skipped": f"{capture} capture: the peer's rig model needs one pose per frame"}
+    skip = _peer_skip_reason(seq, capture) if peer == "colmap" else None
+    if skip:
+        row["colmap"] = {"skipped": skip}
     elif peer == "colmap":
         ids = [f.id for f in seq.rig.frames]
         ego = np.stack([f.ego_to_world for f in seq.rig.frames])
@@ -136,6 +137,18 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
         row["colmap"] = {"seconds": time.perf_counter() - t0, **facts,
                          **_pose_errors(seq.rig.with_extrinsics(ext), seq.rig_true)}
     return row
+
+
+def _peer_skip_reason(seq: SynthSequence, capture: str) -> str | None:
+    """Why the COLMAP peer cannot run on this rig (None: it can)."""
+    if capture != "sync":  # COLMAP's rig frame has one pose for all its images; other capture times do not fit
+        return f"{capture} capture: the peer's rig model needs one pose per frame"
+    for cam in seq.rig.cameras:
+        try:
+            colmap_camera(cam)
+        except InputError as exc:
+            return exc.problem
+    return None
 
 
 def random_rigs(seeds: Sequence[int]) -> tuple[tuple[str, int, str], ...]:

@@ -42,6 +42,8 @@ def colmap_camera(cam: Camera) -> pycolmap.Camera:
     import pycolmap
 
     m = cam.intrinsics
+    if not isinstance(m, (Pinhole, KannalaBrandt)):
+        raise InputError(None, "camera", f"camera {cam.name}: model {m.model} has no COLMAP equivalent here")
     K = np.asarray(m.K, dtype=np.float64)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5
     if isinstance(m, Pinhole) and (m.dist is None or not np.any(m.dist)):
@@ -49,10 +51,8 @@ def colmap_camera(cam: Camera) -> pycolmap.Camera:
     if isinstance(m, Pinhole):
         k1, k2, p1, p2 = (list(np.asarray(m.dist, dtype=np.float64)) + [0.0] * 4)[:4]
         return pycolmap.Camera(model="OPENCV", width=m.width, height=m.height, params=[fx, fy, cx, cy, k1, k2, p1, p2])
-    if isinstance(m, KannalaBrandt):
-        k = list(np.asarray(m.dist, dtype=np.float64))
-        return pycolmap.Camera(model="OPENCV_FISHEYE", width=m.width, height=m.height, params=[fx, fy, cx, cy, *k])
-    raise InputError(None, "camera", f"camera {cam.name}: model {m.model} has no COLMAP equivalent here")
+    k = list(np.asarray(m.dist, dtype=np.float64))
+    return pycolmap.Camera(model="OPENCV_FISHEYE", width=m.width, height=m.height, params=[fx, fy, cx, cy, *k])
 
 
 def _rigid(T: np.ndarray):
