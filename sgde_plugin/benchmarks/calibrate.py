@@ -11,7 +11,7 @@
    the rendered ground truth: Abs Rel, Sq Rel, RMSE, delta < 1.25, coverage. Target: glc Abs Rel
    within 1.2 x the true rig's on nuscenes.
 
-3. Accuracy on rigs it was not developed on (`run(accuracy=True)`, `sgde bench calibrate --peer colmap`):
+3. Accuracy on rigs it was not developed on (`accuracy()`, `sgde bench calibrate --peer colmap [--scale F]`):
    the presets (nuscenes also with sequential capture) and the random rigs of seeds 0-9, 7 frames at scale
    0.5 (`--scale 1` renders each rig at its own size), default noise: GLC from the noisy start and from the
    exact extrinsics, and with `peer="colmap"`
