@@ -12,6 +12,7 @@ from sgde_plugin.calib.ba import (
     relative_rotation_sigma_deg,
     robust_adjust,
 )
+from sgde_plugin.calib.schur import _point_terms, reduced_system
 from sgde_plugin.calib.correspondences import PairMatches
 from sgde_plugin.calib.methods import observations
 from sgde_plugin.calib.simulate import perturb_extrinsics, simulate_observations, straight_drive
@@ -107,6 +108,56 @@ def test_jacobians_match_finite_differences(scene):
         fd = (prob.obs_terms(prob.apply(st, np.zeros(n), dl), False)
               - prob.obs_terms(prob.apply(st, np.zeros(n), -dl), False)) / (2 * eps)
         assert np.allclose(Jl[:, :, c], fd, atol=1e-4 * np.abs(fd).max())
+
+
+def test_reduced_system_is_the_schur_complement_of_the_full_normal_equations(scene):
+    """S and its right-hand side equal Hpp - Hpl Hll^-1 Hlp and -(gp - Hpl Hll^-1 gl) built from the dense Jacobian
+    of every pose and point unknown, with tracks of 2 to 6 observations (the per-point sums, not per pair)."""
+    cams, f, pairs, ego, S_true, S0 = scene
+    obs, _, _ = simulate_observations(cams, pairs, ego, per_view_pair=2, noise_px=0.5, rng=np.random.default_rng(1))
+    lengths = np.bincount(obs.point)
+    assert lengths.min() >= 2 and lengths.max() >= 3
+    prob = _Problem(S0, ego, obs, np.full(len(cams), f), 0, AdjustConfig(refine_focal=False))
+    K = int(obs.point.max()) + 1
+    st = prob.initial_state(K)
+    ego0 = np.einsum("tij,jk->tik", make_transform(st.R_t, st.c_t), invert_transform(S0[0]))
+    pts, anchors, _ = initial_points(S0, ego0, obs, K)
+    st.set_points(pts + 0.1, anchors)
+    lam = 1e-3
+    S, rhs, *_ = reduced_system(prob, st, lam)
+    r, Jp, Jl = prob.obs_terms(st, jacobians=True)
+    _, w = prob.loss(np.sum(r * r, axis=1), prob.cfg.f_scale)
+    n, N = prob.n_full, len(obs)
+    Jpose = np.zeros((2 * N, n))
+    Jpt = np.zeros((2 * N, 3 * K))
+    for i in range(N):
+        for j in range(prob.pose_idx.shape[1]):
+            Jpose[2 * i:2 * i + 2, prob.pose_idx[i, j]] += Jp[i, :, j]
+        Jpt[2 * i:2 * i + 2, 3 * obs.point[i]:3 * obs.point[i] + 3] = Jl[i]
+    W = np.repeat(w, 2)[:, None]
+    Hpp, Hpl, Hll = Jpose.T @ (W * Jpose), Jpose.T @ (W * Jpt), Jpt.T @ (W * Jpt)
+    gp, gl = Jpose.T @ (W[:, 0] * r.ravel()), Jpt.T @ (W[:, 0] * r.ravel())
+    for x, blocks in prob.prior_terms(st):
+        for ia, Ja in blocks:
+            gp[ia:ia + Ja.shape[1]] += Ja.T @ x
+            for ib, Jb in blocks:
+                Hpp[ia:ia + Ja.shape[1], ib:ib + Jb.shape[1]] += Ja.T @ Jb
+    Hll_d = Hll + lam * np.diag(np.diag(Hll)) + 1e-12 * np.eye(3 * K)
+    Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(n)
+    Hll_inv = np.linalg.inv(Hll_d)
+    keep = prob.solve_idx
+    S_ref = Hpp_d - Hpl @ Hll_inv @ Hpl.T
+    rhs_ref = -gp + Hpl @ Hll_inv @ gl
+    scale = np.abs(S_ref[np.ix_(keep, keep)]).max()
+    assert np.allclose(S[np.ix_(keep, keep)], S_ref[np.ix_(keep, keep)], atol=1e-9 * scale)
+    assert np.allclose(rhs[keep], rhs_ref[keep], atol=1e-9 * np.abs(rhs_ref[keep]).max())
+    # the points are summed in chunks (memory); chunk boundaries do not change the sum
+    Hpl_o = np.swapaxes(Jp * w[:, None, None], 1, 2) @ Jl
+    Hinv_o = np.linalg.inv(Hll_d.reshape(K, 3, K, 3)[np.arange(K), :, np.arange(K), :])[obs.point]
+    whole = _point_terms(prob.pose_idx, obs.point, Hpl_o, Hpl_o @ Hinv_o, n, K)
+    assert np.allclose(_point_terms(prob.pose_idx, obs.point, Hpl_o, Hpl_o @ Hinv_o, n, K, chunk=7), whole,
+                       atol=1e-12 * np.abs(whole).max())
+    assert np.allclose(Hpp_d - whole, S, atol=1e-9 * scale)
 
 
 def test_noise_free_recovery(scene):

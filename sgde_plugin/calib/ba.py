@@ -284,20 +284,6 @@ def tangent_basis(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, e2
 
 
-def _pair_indices(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All ordered pairs (i, j) of observations of the same point (i == j included)."""
-    order = np.argsort(point, kind="stable")
-    counts = np.bincount(point)
-    ii, jj = [], []
-    for n in np.unique(counts[counts > 0]):
-        pts = np.flatnonzero(counts == n)
-        starts = np.searchsorted(point[order], pts)
-        groups = order[starts[:, None] + np.arange(n)[None, :]]  # (P, n)
-        ii.append(np.repeat(groups, n, axis=1).ravel())
-        jj.append(np.tile(groups, (1, n)).ravel())
-    return np.concatenate(ii), np.concatenate(jj)
-
-
 class _Problem:
     """Residuals, Jacobians and priors of one loop-constrained adjustment.
 
@@ -347,7 +333,6 @@ class _Problem:
         self.is_ref = obs.camera == reference
         self.ray = np.asarray(obs.ray, dtype=np.float64)
         self.E = np.stack(tangent_basis(self.ray), axis=1)  # (N, 2, 3)
-        self.pair_i, self.pair_j = _pair_indices(obs.point) if len(obs) else (np.zeros(0, int), np.zeros(0, int))
         n = self.n_full
         self.maps = list(focal_maps) if config.refine_focal and focal_maps is not None else None
         if self.maps is not None:
@@ -357,7 +342,6 @@ class _Problem:
             self.pose_idx = np.concatenate([self.pose_idx, (self.f_idx + obs.camera)[:, None]], axis=1)  # (N, 13)
             self.cam_obs = [np.flatnonzero(obs.camera == m) for m in range(self.M)]
         self.flat_pp = (self.pose_idx[:, :, None] * n + self.pose_idx[:, None, :]).ravel()
-        self.flat_ij = (self.pose_idx[self.pair_i][:, :, None] * n + self.pose_idx[self.pair_j][:, None, :]).ravel()
 
     def initial_state(self, n_points: int) -> _State:
         """Poses from the initial extrinsics and ego poses; points still to be triangulated."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, is_dataclass, replace
 
 import cv2
@@ -13,6 +14,7 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..progress import progress
+from ..threads import opencv_threads
 from .dense_pairs import DenseConfig, frame_matches, same_orientation_view
 from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_descriptors, sift_features, to_gray
 from .guided import GuidedConfig, guided_search
@@ -58,6 +60,7 @@ class MatchConfig:
     mount_check_px: float = 0.0  # > 0: every observation pair keeps only matches within this of the pair's one mount
     guided_cross_time: bool = True
     temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
+    mono_links: bool = False  # with temporal_links: keep every verified same-camera match, not only the pairs' tracks
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     static: StaticConfig = field(default_factory=StaticConfig)  # matches across time on static points only
     # sub-pixel patch alignment of the verified keypoints along their tracks (`refine.py`): True, False, or "auto",
@@ -67,6 +70,7 @@ class MatchConfig:
     # dense same-frame correspondences in each pair's overlap (`dense_pairs.py`; off by default)
     dense: DenseConfig = field(default_factory=DenseConfig)
     seed: int = 0
+    threads: int = 2  # images whose features are detected at once (results do not depend on it)
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
@@ -126,6 +130,7 @@ class PairMatches:
     view_pairs: int = 0
     observation_pairs: list[ObservationPair] = field(default_factory=list)
     links: list[PairMatches] = field(default_factory=list)  # same-camera track links (`temporal_links`)
+    standalone: bool = False  # a link set kept whole (`mono_links`), not only where it touches the pair's tracks
 
     def __len__(self) -> int:
         return int(self.frame_a.shape[0])
@@ -155,6 +160,8 @@ class PairMatches:
 
 def _touching(link: PairMatches, pm: PairMatches) -> PairMatches:
     """The same-camera links of `link` that touch a keypoint of `pm`'s correspondences."""
+    if link.standalone:
+        return link
     ends = set()
     for cam, frames, kps in ((pm.cam_a, pm.frame_a, pm.kp_a), (pm.cam_b, pm.frame_b, pm.kp_b)):
         if cam == link.cam_a:
@@ -386,7 +393,7 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
         used = {t: set(kps[(frames == t) & static].tolist()) for t in range(T)}
         verified = []
         for t in range(T - 1):
-            if not (used[t] or used[t + 1]):
+            if not (cfg.mono_links or used[t] or used[t + 1]):
                 continue
             fa, fb = feats[(t, cam, other)], feats[(t + 1, cam, other)]
             tent = _descriptor_matches(fa.subset(fa.across_time), fb.subset(fb.across_time), cfg)
@@ -395,11 +402,15 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
             if v.part is None:
                 continue
             touch = np.isin(v.part["ka"], list(used[t])) | np.isin(v.part["kb"], list(used[t + 1]))
+            if cfg.mono_links:
+                touch[:] = True
             if touch.any():
                 part = {k: x[touch] for k, x in v.part.items()}
                 verified.append(Verified(replace(v.pair, kept=int(touch.sum())), part))
         if verified:
-            links.append(assemble_pair(cam, cam, verified))
+            link = assemble_pair(cam, cam, verified)
+            link.standalone = cfg.mono_links
+            links.append(link)
     return links
 
 
@@ -506,32 +517,42 @@ def detect_features(
     virtual pinhole view aimed at the overlap; `view_images`, when given, receives each view's ViewImage."""
     t0 = time.perf_counter()
     feats: dict[tuple[int, str, str], Keypoints] = {}
-    for name in progress(involved, desc="calibrate: features", enabled=show_progress):
-        cam = cams[name]
-        neighbours = [o for (x, o) in grids if x == name]
-        views = _overlap_views(cams, name, neighbours, grids, cfg)
-        static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
-        raw = [o for o in neighbours if o not in views]
-        det = np.zeros((cam.height, cam.width), np.uint8)
-        for o in raw:
-            det |= grids[(name, o)].any_mask(cam.width, cam.height)
-        if static is not None:
-            det[~static] = 0
-        for t in range(T):
-            picture = images(t, name)
-            if raw:
-                kp = sift_features(picture, det, cfg.max_features, cfg.feature_scale, cfg.contrast_threshold)
+    # one image per thread, each OpenCV call in its own thread (SIFT's own stripes gain 1.3x on 2 cores, this 1.8x)
+    with opencv_threads(1), ThreadPoolExecutor(max(1, cfg.threads)) as pool:
+        for name in progress(involved, desc="calibrate: features", enabled=show_progress):
+            cam = cams[name]
+            neighbours = [o for (x, o) in grids if x == name]
+            views = _overlap_views(cams, name, neighbours, grids, cfg)
+            static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
+            raw = [o for o in neighbours if o not in views]
+            det = np.zeros((cam.height, cam.width), np.uint8)
+            for o in raw:
+                det |= grids[(name, o)].any_mask(cam.width, cam.height)
+            if static is not None:
+                det[~static] = 0
+            jobs = [pool.submit(_image_features, cam, images(t, name), det if raw else None, views, static, cfg)
+                    for t in range(T)]
+            for t, job in enumerate(jobs):
+                kp, per_view = job.result()
                 for o in raw:
                     feats[(t, name, o)] = kp
-            for slot, (o, view) in enumerate(views.items()):
-                feats[(t, name, o)], vim = _view_features(cam, view, picture, static, slot, cfg)
-                if view_images is not None:
-                    view_images[(t, name, o)] = vim
-        if cfg.cross_time and T > 1:
-            for o in [*views, *raw[:1]]:
-                mark_fixed([feats[(t, name, o)] for t in range(T)])
+                for o, (kv, vim) in per_view.items():
+                    feats[(t, name, o)] = kv
+                    if view_images is not None:
+                        view_images[(t, name, o)] = vim
+            if cfg.cross_time and T > 1:
+                for o in [*views, *raw[:1]]:
+                    mark_fixed([feats[(t, name, o)] for t in range(T)])
     timings.add("features", t0)
     return feats
+
+
+def _image_features(cam: Camera, picture: np.ndarray, det: np.ndarray | None, views: dict[str, VirtualView],
+                    static: np.ndarray | None, cfg: MatchConfig) -> tuple[Keypoints | None, dict]:
+    """SIFT of one image: on the raw image inside `det` (None: not asked) and on each neighbour's view."""
+    kp = None if det is None else sift_features(picture, det, cfg.max_features, cfg.feature_scale,
+                                                 cfg.contrast_threshold)
+    return kp, {o: _view_features(cam, view, picture, static, slot, cfg) for slot, (o, view) in enumerate(views.items())}
 
 
 def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str],

@@ -56,13 +56,27 @@ def reduced_system(prob: _Problem, st: _State, lam: float):
     Hpp_d = Hpp + lam * np.diag(np.diag(Hpp)) + 1e-12 * np.eye(n)
     Hll_inv = np.linalg.inv(Hll_d)
     Hpl = Jp_wT @ Jl  # (N, 12, 3)
-    # Schur complement: S = Hpp - sum over observation pairs (i, j) of one point of Hpl_i Hll^-1 Hpl_j^T
-    i, j = prob.pair_i, prob.pair_j
-    blocks = (Hpl[i] @ Hll_inv[o.point[i]]) @ np.swapaxes(Hpl[j], 1, 2)
-    S = Hpp_d - np.bincount(prob.flat_ij, weights=blocks.ravel(), minlength=n * n).reshape(n, n)
+    S = Hpp_d - _point_terms(prob.pose_idx, o.point, Hpl, Hpl @ Hll_inv[o.point], n, K)
     v = (Hll_inv @ gl[:, :, None])[:, :, 0]
     rhs = -gp + np.bincount(prob.pose_idx.ravel(), weights=(Hpl @ v[o.point][:, :, None]).ravel(), minlength=n)
     return S, rhs, Hpl, Hll_inv, gl
+
+
+def _point_terms(pose_idx: np.ndarray, point: np.ndarray, Hpl: np.ndarray, HplHinv: np.ndarray, n: int, K: int,
+                 chunk: int = 8192) -> np.ndarray:
+    """sum over points k of B_k Hll_k^-1 B_k^T (n, n), B_k the sum of the Hpl of k's observations (n, 3).
+
+    Per chunk of points, B and B Hll^-1 as dense (n, 3 * chunk) matrices and one product: a sum over the pairs
+    of observations of each point would cost (track length)^2 blocks per point."""
+    out = np.zeros((n, n))
+    for k0 in range(0, K, chunk):
+        sel = np.flatnonzero((point >= k0) & (point < k0 + chunk))
+        width = 3 * min(chunk, K - k0)
+        flat = (pose_idx[sel, :, None] * width + 3 * (point[sel] - k0)[:, None, None] + np.arange(3)).ravel()
+        B = np.bincount(flat, weights=Hpl[sel].ravel(), minlength=n * width).reshape(n, width)
+        BH = np.bincount(flat, weights=HplHinv[sel].ravel(), minlength=n * width).reshape(n, width)
+        out += BH @ B.T
+    return out
 
 
 def refine_points(prob: _Problem, st: _State) -> None:
