@@ -12,9 +12,9 @@ from sgde_plugin.calib.ba import (
     relative_rotation_sigma_deg,
     robust_adjust,
 )
-from sgde_plugin.calib.schur import _point_terms, reduced_system
 from sgde_plugin.calib.correspondences import PairMatches
 from sgde_plugin.calib.methods import observations
+from sgde_plugin.calib.schur import _point_terms, reduced_system
 from sgde_plugin.calib.simulate import perturb_extrinsics, simulate_observations, straight_drive
 from sgde_plugin.cameras import Camera, Pinhole
 from sgde_plugin.geometry import (

@@ -552,7 +552,8 @@ def _image_features(cam: Camera, picture: np.ndarray, det: np.ndarray | None, vi
     """SIFT of one image: on the raw image inside `det` (None: not asked) and on each neighbour's view."""
     kp = None if det is None else sift_features(picture, det, cfg.max_features, cfg.feature_scale,
                                                  cfg.contrast_threshold)
-    return kp, {o: _view_features(cam, view, picture, static, slot, cfg) for slot, (o, view) in enumerate(views.items())}
+    return kp, {o: _view_features(cam, view, picture, static, slot, cfg)
+                for slot, (o, view) in enumerate(views.items())}
 
 
 def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str],
