@@ -77,3 +77,31 @@ def test_track_links_join_one_camera_across_frames_and_follow_the_ego_motion(box
             assert np.median(err) < 0.05 and np.mean(err < 0.2) > 0.9
             n_links += len(link)
     assert n_links >= 500
+
+
+def test_mono_links_keep_every_verified_same_camera_match_through_beta(box):
+    """With `mono_links` the links are every verified match of a camera's view between consecutive frames: a
+    superset of the touching links, on the true ego motion's epipolar planes, and kept whole by beta's
+    selection (`observed_with`), which cuts plain links to those touching the surviving correspondences."""
+    rig_true, rig, images = box
+    ego = np.stack([f.ego_to_world for f in rig.frames])
+    ids = [f.id for f in rig.frames]
+    with torch_threads(1):
+        touching = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
+                                        config=MatchConfig(temporal_links=True))
+        mono = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
+                                    config=MatchConfig(temporal_links=True, mono_links=True))
+    n_touch = sum(len(link) for pm in touching for link in pm.links)
+    n_mono = sum(len(link) for pm in mono for link in pm.links)
+    assert n_mono >= 2 * n_touch
+    for pm_t, pm_m in zip(touching, mono):
+        for lt, lm in zip(pm_t.links, pm_m.links):
+            assert lm.standalone and not lt.standalone and lm.cam_a == lt.cam_a
+            assert set(zip(lt.frame_a.tolist(), lt.kp_a.tolist())) <= set(zip(lm.frame_a.tolist(), lm.kp_a.tolist()))
+            S = rig_true.camera(lm.cam_a).sensor_to_ego
+            rel = np.linalg.inv(ego[1] @ S) @ ego[0] @ S
+            err = epipolar_angle_deg(lm.rays_a, lm.rays_b, rel[:3, :3], rel[:3, 3])
+            assert np.median(err) < 0.05 and np.mean(err < 0.2) > 0.9
+        few = pm_m.observed_with(10**6)  # no observation pair passes: no correspondence left to touch
+        assert len(few) == 0 and [len(x) for x in few.links] == [len(x) for x in pm_m.links]
+        assert all(len(x) == 0 for x in pm_t.observed_with(10**6).links)
