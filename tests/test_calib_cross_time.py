@@ -18,6 +18,30 @@ def box():
         return box_world_rig(n_frames=2, seed=1)
 
 
+def _matches(box, config=None):
+    """Correspondences of the box world's window (with `config`) and its ego poses."""
+    _, rig, images = box
+    ego = np.stack([f.ego_to_world for f in rig.frames])
+    ids = [f.id for f in rig.frames]
+    with torch_threads(1):
+        return find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
+                                    config=config), ego
+
+
+@pytest.fixture(scope="module")
+def linked(box):
+    """The box world's correspondences with temporal links, and its ego poses."""
+    return _matches(box, MatchConfig(temporal_links=True))
+
+
+def _assert_on_the_ego_motion(link, rig_true, ego):
+    """A link's matches lie on the epipolar planes of the true ego motion between its two frames."""
+    S = rig_true.camera(link.cam_a).sensor_to_ego
+    rel = np.linalg.inv(ego[1] @ S) @ ego[0] @ S
+    err = epipolar_angle_deg(link.rays_a, link.rays_b, rel[:3, :3], rel[:3, 3])
+    assert np.median(err) < 0.05 and np.mean(err < 0.2) > 0.9
+
+
 def _errors(rig, rig_true):
     rows = relative_pose_errors(rig, rig_true)
     return np.array([r["rotation_deg"] for r in rows]), np.array([r["translation_m"] for r in rows])
@@ -48,16 +72,12 @@ def test_a_pair_seen_only_across_time_is_observed(box):
     assert rot0.min() > 0.25 and rot[2] < 0.2 and rot[2] <= np.delete(rot, 2).max() and trans.max() < 0.03
 
 
-def test_track_links_join_one_camera_across_frames_and_follow_the_ego_motion(box):
+def test_track_links_join_one_camera_across_frames_and_follow_the_ego_motion(box, linked):
     """Every same-camera link joins consecutive frames of one camera at a keypoint of the pair's
     correspondences, and agrees with the true ego motion to a small fraction of a degree."""
-    rig_true, rig, images = box
-    ego = np.stack([f.ego_to_world for f in rig.frames])
-    ids = [f.id for f in rig.frames]
-    with torch_threads(1):
-        matches = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
-                                       config=MatchConfig(temporal_links=True))
-        plain = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c])
+    rig_true = box[0]
+    matches, ego = linked
+    plain, _ = _matches(box)
     assert all(not pm.links for pm in plain)
     n_links = 0
     for pm in matches:
@@ -71,26 +91,18 @@ def test_track_links_join_one_camera_across_frames_and_follow_the_ego_motion(box
                     ends |= set(zip(fr.tolist(), kp.tolist()))
             assert all((fa, ka) in ends or (fb, kb) in ends for fa, ka, fb, kb in
                        zip(link.frame_a.tolist(), link.kp_a.tolist(), link.frame_b.tolist(), link.kp_b.tolist()))
-            S = rig_true.camera(link.cam_a).sensor_to_ego
-            rel = np.linalg.inv(ego[1] @ S) @ ego[0] @ S
-            err = epipolar_angle_deg(link.rays_a, link.rays_b, rel[:3, :3], rel[:3, 3])
-            assert np.median(err) < 0.05 and np.mean(err < 0.2) > 0.9
+            _assert_on_the_ego_motion(link, rig_true, ego)
             n_links += len(link)
     assert n_links >= 500
 
 
-def test_mono_links_keep_every_verified_same_camera_match_through_beta(box):
+def test_mono_links_keep_every_verified_same_camera_match_through_beta(box, linked):
     """With `mono_links` the links are every verified match of a camera's view between consecutive frames: a
     superset of the touching links, on the true ego motion's epipolar planes, and kept whole by beta's
     selection (`observed_with`), which cuts plain links to those touching the surviving correspondences."""
-    rig_true, rig, images = box
-    ego = np.stack([f.ego_to_world for f in rig.frames])
-    ids = [f.id for f in rig.frames]
-    with torch_threads(1):
-        touching = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
-                                        config=MatchConfig(temporal_links=True))
-        mono = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
-                                    config=MatchConfig(temporal_links=True, mono_links=True))
+    rig_true = box[0]
+    touching, ego = linked
+    mono, _ = _matches(box, MatchConfig(temporal_links=True, mono_links=True))
     n_touch = sum(len(link) for pm in touching for link in pm.links)
     n_mono = sum(len(link) for pm in mono for link in pm.links)
     assert n_mono >= 2 * n_touch
@@ -98,10 +110,7 @@ def test_mono_links_keep_every_verified_same_camera_match_through_beta(box):
         for lt, lm in zip(pm_t.links, pm_m.links):
             assert lm.standalone and not lt.standalone and lm.cam_a == lt.cam_a
             assert set(zip(lt.frame_a.tolist(), lt.kp_a.tolist())) <= set(zip(lm.frame_a.tolist(), lm.kp_a.tolist()))
-            S = rig_true.camera(lm.cam_a).sensor_to_ego
-            rel = np.linalg.inv(ego[1] @ S) @ ego[0] @ S
-            err = epipolar_angle_deg(lm.rays_a, lm.rays_b, rel[:3, :3], rel[:3, 3])
-            assert np.median(err) < 0.05 and np.mean(err < 0.2) > 0.9
+            _assert_on_the_ego_motion(lm, rig_true, ego)
         few = pm_m.observed_with(10**6)  # no observation pair passes: no correspondence left to touch
         assert len(few) == 0 and [len(x) for x in few.links] == [len(x) for x in pm_m.links]
         assert all(len(x) == 0 for x in pm_t.observed_with(10**6).links)
