@@ -300,8 +300,10 @@ class _Problem:
         mounts = sensor_to_ego.copy()
         if capture_mount is not None:
             mounts[reference] = capture_mount
-        cap = capture_offsets(mounts, ego_to_world, reference)[obs.frame, obs.camera]  # (N, 4, 4)
-        self.cap_RT, self.cap_t = np.swapaxes(cap[:, :3, :3], 1, 2), cap[:, :3, 3]
+        cap = capture_offsets(mounts, ego_to_world, reference)  # (T, M, 4, 4)
+        self.cap_RT = np.swapaxes(cap[:, :, :3, :3], 2, 3)  # per frame and camera
+        self.cap_RT_t = np.einsum("tmij,tmj->tmi", self.cap_RT, cap[:, :, :3, 3])
+        self.view = obs.frame * self.M + obs.camera  # each observation's (frame, camera)
         if ego_to_world.ndim == 4:
             ego_to_world = ego_to_world[:, reference]
         self.loss = LOSSES[config.loss]
@@ -377,14 +379,15 @@ class _Problem:
         stays finite for points at infinity: q = R_m^T (R_t^T (rho (anchor - c_t) + m) - rho p_m).
         """
         o = self.obs
-        Rt, ct = st.R_t[o.frame], st.c_t[o.frame]
-        Rm, pm = st.R_m[o.camera], st.p_m[o.camera]
+        # the rotations and offsets depend on (frame, camera) only: composed once per pair, then gathered
+        RmT_all = np.swapaxes(st.R_m, 1, 2)  # (M, 3, 3)
+        RtT_all = np.einsum("tmij,tkj->tmik", self.cap_RT, st.R_t)  # E_R^T R_t^T, (T, M, 3, 3)
+        C_all = np.einsum("mij,tmjk->tmik", RmT_all, RtT_all).reshape(-1, 3, 3)  # R_m^T E_R^T R_t^T
+        d_all = np.einsum("mij,tmj->tmi", RmT_all, self.cap_RT_t + st.p_m[None]).reshape(-1, 3)
+        C, d, ct = C_all[self.view], d_all[self.view], st.c_t[o.frame]
         rho, m, a = st.rho[o.point], st.m[o.point], st.anchor[o.point]
         h = rho[:, None] * (a - ct) + m
-        RtT = self.cap_RT @ np.swapaxes(Rt, 1, 2)  # with the capture offset E: E_R^T R_t^T
-        v = (RtT @ h[:, :, None])[:, :, 0] - rho[:, None] * ((self.cap_RT @ self.cap_t[:, :, None])[:, :, 0] + pm)
-        RmT = np.swapaxes(Rm, 1, 2)
-        q = (RmT @ v[:, :, None])[:, :, 0]
+        q = q_cam = np.einsum("nij,nj->ni", C, h) - rho[:, None] * d  # R_m^T (E_R^T R_t^T h - rho (E_R^T E_t + p_m))
         if self.maps is not None:
             q, dq_dq, dq_ds = self.map_focal(q, st)
         nq = np.maximum(np.linalg.norm(q, axis=1), 1e-12)
@@ -402,17 +405,20 @@ class _Problem:
         if self.maps is not None:
             extra = [A @ dq_ds[:, :, None]]  # d r / d s of the observation's camera
             A = A @ dq_dq
+        RmT = RmT_all[o.camera]
         A_RmT = A @ RmT
-        A_RmT_RtT = A_RmT @ RtT
+        A_C = A @ C  # A R_m^T E_R^T R_t^T
+        v = np.einsum("nji,nj->ni", RmT, q_cam)  # R_m q: the point before the camera's rotation
+        # a @ skew(w) for each row a is the cross product a x w
         J_pose = np.concatenate(
-            [A_RmT_RtT @ skew(h), -rho[:, None, None] * A_RmT_RtT, A_RmT @ skew(v), -rho[:, None, None] * A_RmT]
-            + extra, axis=2,
+            [np.cross(A_C, h[:, None, :]), -rho[:, None, None] * A_C, np.cross(A_RmT, v[:, None, :]),
+             -rho[:, None, None] * A_RmT] + extra, axis=2,
         )  # (N, 2, 12), (N, 2, 13) with the focal scale
         J_pose[self.is_ref, :, 6:12] = 0.0
         e1, e2 = tangent_basis(st.m)
         B = np.stack([e1, e2], axis=2)[o.point]  # (N, 3, 2) tangent basis of m
-        d_rho = (RtT @ (a - ct)[:, :, None])[:, :, 0] - (self.cap_RT @ self.cap_t[:, :, None])[:, :, 0] - pm
-        J_pt = np.concatenate([A_RmT_RtT @ B, (A_RmT @ d_rho[:, :, None])], axis=2)  # (N, 2, 3)
+        d_rho = np.einsum("nij,nj->ni", C, a - ct) - d  # R_m^T (E_R^T R_t^T (a - c_t) - E_R^T E_t - p_m)
+        J_pt = np.concatenate([A_C @ B, (A @ d_rho[:, :, None])], axis=2)  # (N, 2, 3)
         return r, J_pose, J_pt
 
     def prior_terms(self, st: _State) -> list[tuple[np.ndarray, list[tuple[int, np.ndarray]]]]:

@@ -519,7 +519,8 @@ def detect_features(
     feats: dict[tuple[int, str, str], Keypoints] = {}
     # one image per thread, each OpenCV call in its own thread (SIFT's own stripes gain 1.3x on 2 cores, this 1.8x)
     with opencv_threads(1), ThreadPoolExecutor(max(1, cfg.threads)) as pool:
-        for name in progress(involved, desc="calibrate: features", enabled=show_progress):
+        jobs = {}
+        for name in involved:
             cam = cams[name]
             neighbours = [o for (x, o) in grids if x == name]
             views = _overlap_views(cams, name, neighbours, grids, cfg)
@@ -530,9 +531,11 @@ def detect_features(
                 det |= grids[(name, o)].any_mask(cam.width, cam.height)
             if static is not None:
                 det[~static] = 0
-            jobs = [pool.submit(_image_features, cam, images(t, name), det if raw else None, views, static, cfg)
-                    for t in range(T)]
-            for t, job in enumerate(jobs):
+            jobs[name] = (raw, views, [pool.submit(_image_features, cam, images(t, name), det if raw else None, views,
+                                                   static, cfg) for t in range(T)])
+        for name in progress(involved, desc="calibrate: features", enabled=show_progress):
+            raw, views, per_frame = jobs[name]
+            for t, job in enumerate(per_frame):
                 kp, per_view = job.result()
                 for o in raw:
                     feats[(t, name, o)] = kp
