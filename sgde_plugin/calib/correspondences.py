@@ -521,18 +521,9 @@ def detect_features(
     with opencv_threads(1), ThreadPoolExecutor(max(1, cfg.threads)) as pool:
         jobs = {}
         for name in involved:
-            cam = cams[name]
-            neighbours = [o for (x, o) in grids if x == name]
-            views = _overlap_views(cams, name, neighbours, grids, cfg)
-            static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
-            raw = [o for o in neighbours if o not in views]
-            det = np.zeros((cam.height, cam.width), np.uint8)
-            for o in raw:
-                det |= grids[(name, o)].any_mask(cam.width, cam.height)
-            if static is not None:
-                det[~static] = 0
-            jobs[name] = (raw, views, [pool.submit(_image_features, cam, images(t, name), det if raw else None, views,
-                                                   static, cfg) for t in range(T)])
+            raw, views, static, det = _detection_plan(cams, name, grids, masks, cfg)
+            jobs[name] = (raw, views, [pool.submit(_image_features, cams[name], images(t, name), det, views, static,
+                                                   cfg) for t in range(T)])
         for name in progress(involved, desc="calibrate: features", enabled=show_progress):
             raw, views, per_frame = jobs[name]
             for t, job in enumerate(per_frame):
@@ -548,6 +539,26 @@ def detect_features(
                     mark_fixed([feats[(t, name, o)] for t in range(T)])
     timings.add("features", t0)
     return feats
+
+
+def _detection_plan(cams: dict[str, Camera], name: str, grids: dict[tuple[str, str], OverlapGrid],
+                    masks: dict[str, np.ndarray] | None, cfg: MatchConfig) -> tuple[list[str], dict, np.ndarray | None,
+                                                                                    np.ndarray | None]:
+    """Where camera `name`'s features are detected: the neighbours seen on the raw image, the virtual view per
+    other neighbour, its static mask, and the raw image's detection mask (None when no neighbour uses it)."""
+    cam = cams[name]
+    neighbours = [o for (x, o) in grids if x == name]
+    views = _overlap_views(cams, name, neighbours, grids, cfg)
+    static = None if masks is None or name not in masks else np.asarray(masks[name], bool)
+    raw = [o for o in neighbours if o not in views]
+    if not raw:
+        return raw, views, static, None
+    det = np.zeros((cam.height, cam.width), np.uint8)
+    for o in raw:
+        det |= grids[(name, o)].any_mask(cam.width, cam.height)
+    if static is not None:
+        det[~static] = 0
+    return raw, views, static, det
 
 
 def _image_features(cam: Camera, picture: np.ndarray, det: np.ndarray | None, views: dict[str, VirtualView],
