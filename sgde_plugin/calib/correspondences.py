@@ -383,17 +383,18 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
     baseline of metres) instead of by the mount's baseline alone, which separates a narrow pair's rotation
     from its translation. Keypoints that stay at one pixel (`mark_fixed`: at infinity or moving with the
     car) or move unlike a static point are left out, and so are the ends of same-frame correspondences whose
-    range disagrees with what their cameras' frames say (`static_world`: an object that drives along)."""
+    range disagrees with what their cameras' frames say (`static_world`: an object that drives along).
+    With `cfg.mono_links` every verified match is kept, as a `standalone` link set."""
     rng = np.random.default_rng(cfg.seed)
     unlimited = replace(cfg, max_per_view_pair=1 << 30)
     links = []
-    static = _static_correspondences(pm, feats, poses, cfg)
+    static = None if cfg.mono_links else _static_correspondences(pm, feats, poses, cfg)
     ends = ((pm.cam_a, pm.cam_b, pm.frame_a, pm.kp_a), (pm.cam_b, pm.cam_a, pm.frame_b, pm.kp_b))
     for cam, other, frames, kps in ends:
-        used = {t: set(kps[(frames == t) & static].tolist()) for t in range(T)}
+        used = None if static is None else {t: set(kps[(frames == t) & static].tolist()) for t in range(T)}
         verified = []
         for t in range(T - 1):
-            if not (cfg.mono_links or used[t] or used[t + 1]):
+            if used is not None and not (used[t] or used[t + 1]):
                 continue
             fa, fb = feats[(t, cam, other)], feats[(t + 1, cam, other)]
             tent = _descriptor_matches(fa.subset(fa.across_time), fb.subset(fb.across_time), cfg)
@@ -401,9 +402,10 @@ def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses:
             v = verify_observation_pair(cams[cam], cams[cam], t, t + 1, tent, rel, unlimited, rng)
             if v.part is None:
                 continue
-            touch = np.isin(v.part["ka"], list(used[t])) | np.isin(v.part["kb"], list(used[t + 1]))
-            if cfg.mono_links:
-                touch[:] = True
+            if used is None:
+                touch = np.ones(len(v.part["ka"]), dtype=bool)
+            else:
+                touch = np.isin(v.part["ka"], list(used[t])) | np.isin(v.part["kb"], list(used[t + 1]))
             if touch.any():
                 part = {k: x[touch] for k, x in v.part.items()}
                 verified.append(Verified(replace(v.pair, kept=int(touch.sum())), part))
