@@ -1,4 +1,4 @@
-"""Scoped torch and OpenCV thread counts."""
+"""Scoped torch, OpenCV and BLAS thread counts."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterator
 
 import cv2
 import torch
+from threadpoolctl import threadpool_limits
 
 
 @contextlib.contextmanager
@@ -40,3 +41,12 @@ def opencv_threads(n: int = 1) -> contextlib.AbstractContextManager[None]:
     and whose stripes meet at a barrier). Results do not depend on it.
     """
     return _scoped(cv2.getNumThreads, cv2.setNumThreads, n)
+
+
+def blas_threads(n: int = 1) -> contextlib.AbstractContextManager:
+    """Run a block with the BLAS libraries (numpy's and scipy's OpenBLAS) at `n` threads, then restore them.
+
+    For numpy work on small matrices or already spread over threads of its own (the adjustment: about 100
+    unknowns), where BLAS threads spinning per call cost more than they gain; a fixed count also keeps
+    results independent of the machine's core count (the summation order of a product depends on it)."""
+    return threadpool_limits(n, user_api="blas")

@@ -117,12 +117,16 @@ def test_a_focal_length_off_by_0_8_percent_is_recovered(bad):
 
 def test_exact_intrinsics_stay():
     """With exact intrinsics every free estimate stays within 0.1 % of 1, none is significant, and the result
-    is the fixed-intrinsics one, unchanged."""
+    is the fixed-intrinsics one, unchanged, whether those passes ran beside the free ones or after them."""
     cams, f, pairs, ego, S_true, S0, obs = _ring_observations(None, 1.0)
     fixed, refined = _both(cams, f, ego, S0, obs)
     assert np.abs(refined.focal_scale_free - 1.0).max() < 0.001
     assert np.all(refined.focal_scale == 1.0)
     assert np.array_equal(refined.sensor_to_ego, fixed.sensor_to_ego) and refined.iterations == fixed.iterations
+    one_thread, _ = robust_adjust(S0, ego, obs, np.full(len(cams), f), config=AdjustConfig(threads=1),
+                                  focal_maps=[focal_map(c.intrinsics) for c in cams])
+    assert np.array_equal(one_thread.sensor_to_ego, refined.sensor_to_ego)
+    assert np.array_equal(one_thread.focal_scale_free, refined.focal_scale_free)
     rot, _ = rel_errors(refined.sensor_to_ego, S_true, pairs)
     assert rot.max() < 0.04
 

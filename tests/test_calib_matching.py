@@ -84,12 +84,17 @@ def test_sift_matches_follow_the_true_geometry(box):
 
 
 def test_find_correspondences_all_frame_pairs(box):
+    """Every T x T observation pair is matched and verified; the answer does not depend on how many threads
+    match them (the random subsets of `max_per_view_pair` are drawn in a fixed order)."""
     _, rig, images = box
     ego = np.stack([f.ego_to_world for f in rig.frames])
     ids = [f.id for f in rig.frames]
     with torch_threads(1):
-        pms = find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
-                                   config=MatchConfig(max_per_view_pair=40))
+        pms, one = (find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
+                                         config=MatchConfig(max_per_view_pair=40, threads=n)) for n in (2, 1))
+    assert sum(p.inliers > len(p) for p in pms) > 0  # some pairs were subsampled
+    for p, q in zip(pms, one, strict=True):
+        assert np.array_equal(p.rays_a, q.rays_a) and np.array_equal(p.kp_b, q.kp_b) and p.inliers == q.inliers
     assert [(p.cam_a, p.cam_b) for p in pms] == list(rig.pairs)
     seen = set()
     for p in pms:

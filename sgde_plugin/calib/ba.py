@@ -56,11 +56,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..geometry import invert_transform, make_transform, rodrigues, rotation_vector, skew
+from ..threads import blas_threads
 from .focal import FocalMap
 from .schur import covariance, lm_step
 
@@ -87,6 +89,7 @@ class AdjustConfig:
     refine_focal: bool = True
     sigma_focal: float = 0.01
     focal_min_sigmas: float = 10.0
+    threads: int = 2  # with focal scales: the fixed-intrinsics passes run beside the free ones (same result)
 
 
 @dataclass
@@ -671,26 +674,33 @@ def robust_adjust(
     Focal lengths (`config.refine_focal` with `focal_maps`): the passes run first with every camera's
     focal-length scale free (prior `config.sigma_focal`), which estimates each with its 1-sigma. A scale
     that differs from 1 by at least `config.focal_min_sigmas` sigmas is adopted. When all are, that is
-    the result; when none is, the passes are run again with the rig's intrinsics (the result is then the
-    fixed-intrinsics one, unchanged); otherwise again with the adopted cameras' scales free and the others
-    at 1. `focal_scale_free` / `focal_scale_sigma` report the free estimates either way; `iterations`
-    counts the passes of the result only (each run has the full iteration limit).
+    the result; when none is, the result is that of the passes with the rig's intrinsics (the
+    fixed-intrinsics one, unchanged; with `config.threads` > 1 they run beside the free ones); otherwise
+    the passes run again with the adopted cameras' scales free and the others at 1. `focal_scale_free` /
+    `focal_scale_sigma` report the free estimates either way; `iterations` counts the passes of the result
+    only (each run has the full iteration limit).
     """
     cfg = config or AdjustConfig()
     sch = schedule or RobustSchedule()
-    if not (cfg.refine_focal and focal_maps is not None and any(fm is not None for fm in focal_maps)):
-        return _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, None)[:2]
-    res, kept, _ = _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, focal_maps)
-    if res.focal_scale is None or res.focal_scale_sigma is None:
-        return res, kept
-    free, sigma = res.focal_scale.copy(), res.focal_scale_sigma.copy()
-    adopt = np.array([fm is not None for fm in focal_maps]) & (np.abs(free - 1.0) >= cfg.focal_min_sigmas * sigma)
-    _LOG.debug("focal scales: free %s, sigma %s, adopted %s", free, sigma, adopt)
-    if not adopt.all():
-        maps = [fm if adopt[m] else None for m, fm in enumerate(focal_maps)] if adopt.any() else None
-        res, kept, _ = _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch, maps)
-        if maps is None:
+    args = (sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch)
+    # one BLAS thread: the matrices are small (threads spinning per call cost more than they gain), and the
+    # result does not depend on how many passes run side by side
+    with blas_threads(1), ThreadPoolExecutor(max(1, cfg.threads)) as pool:
+        if not (cfg.refine_focal and focal_maps is not None and any(fm is not None for fm in focal_maps)):
+            return _robust_passes(*args, None)[:2]
+        # the fixed-intrinsics passes, the answer when no scale is adopted, run beside the free ones
+        fixed = pool.submit(_robust_passes, *args, None) if cfg.threads > 1 else None
+        res, kept, _ = _robust_passes(*args, focal_maps)
+        if res.focal_scale is None or res.focal_scale_sigma is None:
+            return res, kept
+        free, sigma = res.focal_scale.copy(), res.focal_scale_sigma.copy()
+        adopt = np.array([fm is not None for fm in focal_maps]) & (np.abs(free - 1.0) >= cfg.focal_min_sigmas * sigma)
+        _LOG.debug("focal scales: free %s, sigma %s, adopted %s", free, sigma, adopt)
+        if not adopt.any():
+            res, kept, _ = fixed.result() if fixed is not None else _robust_passes(*args, None)
             res.focal_scale = np.ones_like(free)
+        elif not adopt.all():
+            res, kept, _ = _robust_passes(*args, [fm if adopt[m] else None for m, fm in enumerate(focal_maps)])
     res.focal_scale_free, res.focal_scale_sigma = free, sigma
     return res, kept
 

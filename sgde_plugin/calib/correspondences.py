@@ -70,7 +70,7 @@ class MatchConfig:
     # dense same-frame correspondences in each pair's overlap (`dense_pairs.py`; off by default)
     dense: DenseConfig = field(default_factory=DenseConfig)
     seed: int = 0
-    threads: int = 2  # images whose features are detected at once (results do not depend on it)
+    threads: int = 2  # images whose features are detected, observation pairs matched at once (same results)
 
     def to_dict(self) -> dict:
         """JSON-able settings (for the calibration block)."""
@@ -180,6 +180,14 @@ class Timings:
     def add(self, stage: str, t0: float) -> None:
         """Add the time since `t0` (time.perf_counter) to a stage."""
         self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+    def share(self, t0: float, busy: dict[str, float]) -> None:
+        """Add the time since `t0` to stages that ran side by side in threads, split in proportion to each
+        stage's summed thread time `busy` (so the stages still add up to the wall time)."""
+        total = sum(busy.values())
+        wall = time.perf_counter() - t0
+        for stage, s in busy.items():
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + (wall * s / total if total > 0 else 0.0)
 
 
 def _empty(a: str, b: str) -> PairMatches:
@@ -441,15 +449,27 @@ def _verify_all(cams: dict[str, Camera], pairs: Sequence[tuple[str, str]], T: in
     verified: dict[tuple[str, str], list[Verified]] = {(a, b): [] for a, b in pairs}
     tentative: dict[tuple[str, str], list[Tentative]] = {(a, b): [] for a, b in pairs}
     jobs = [(a, b, t, t2) for a, b in pairs for t in range(T) for t2 in range(T) if cfg.cross_time or t == t2]
-    for a, b, t, t2 in progress(jobs, desc="calibrate: matching", total=len(jobs), enabled=show_progress):
+
+    def screen(a: str, b: str, t: int, t2: int) -> tuple[Tentative, _Screened, float, float]:
         t0 = time.perf_counter()
         tent = match(a, b, t, t2)
-        timings.add("matching", t0)
-        t0 = time.perf_counter()
-        verified[(a, b)].append(verify_observation_pair(cams[a], cams[b], t, t2, tent, _rel(poses, a, b, t, t2), cfg,
-                                                        rng))
-        tentative[(a, b)].append(tent)
-        timings.add("ransac", t0)
+        t1 = time.perf_counter()
+        scr = screen_observation_pair(cams[a], cams[b], tent, _rel(poses, a, b, t, t2), cfg)
+        return tent, scr, t1 - t0, time.perf_counter() - t1
+
+    # matching and RANSAC of the observation pairs side by side; the random subsets are drawn in job order
+    busy = {"matching": 0.0, "ransac": 0.0}
+    t_pool = time.perf_counter()
+    with opencv_threads(1), ThreadPoolExecutor(max(1, cfg.threads)) as pool:
+        futures = [pool.submit(screen, *job) for job in jobs]
+        for (a, b, t, t2), fut in progress(list(zip(jobs, futures)), desc="calibrate: matching", total=len(jobs),
+                                           enabled=show_progress):
+            tent, scr, dm, dr = fut.result()
+            busy["matching"] += dm
+            busy["ransac"] += dr
+            verified[(a, b)].append(verify_observation_pair(cams[a], cams[b], t, t2, tent, None, cfg, rng, scr))
+            tentative[(a, b)].append(tent)
+    timings.share(t_pool, busy)
     if densify is None:
         return verified
     for a, b in pairs:
@@ -631,10 +651,21 @@ def _loftr_tentative(loftr, images, grids: dict, cams: dict, masks, a: str, b: s
     return Tentative(uva[keep], uvb[keep], sig, sig, kp, kp)
 
 
-def verify_observation_pair(ca: Camera, cb: Camera, t: int, t2: int, tent: Tentative, rel: np.ndarray,
-                            cfg: MatchConfig, rng: np.random.Generator) -> Verified:
-    """Loose epipolar gate from the initial relative pose `rel` (a at t -> b at t2), then USAC on the
-    essential matrix; at most `max_per_view_pair` inliers are kept (a random subset)."""
+@dataclass
+class _Screened:
+    """An observation pair's matches through the epipolar gate and RANSAC: their rays, the tentative and gated
+    counts, and the indices of the inliers."""
+
+    ra: np.ndarray
+    rb: np.ndarray
+    tentative: int
+    gated: int
+    inliers: np.ndarray
+
+
+def screen_observation_pair(ca: Camera, cb: Camera, tent: Tentative, rel: np.ndarray, cfg: MatchConfig) -> _Screened:
+    """Loose epipolar gate from the initial relative pose `rel` (a at t -> b at t2), then USAC on the essential
+    matrix (no random state of ours: safe in threads)."""
     ra, va = ca.intrinsics.unproject(tent.uv_a)
     rb, vb = cb.intrinsics.unproject(tent.uv_b)
     sel = np.flatnonzero(va & vb)
@@ -643,15 +674,23 @@ def verify_observation_pair(ca: Camera, cb: Camera, t: int, t2: int, tent: Tenta
     sel = sel[gate]
     focal = min(pixels_per_radian(ca.intrinsics), pixels_per_radian(cb.intrinsics))
     inl = essential_inliers(ra[sel], rb[sel], cfg.ransac_threshold_px, focal, cfg.ransac_prob, seed=cfg.seed)
-    n_inl = int(inl.sum())
+    return _Screened(ra, rb, tentative, int(sel.size), sel[inl])
+
+
+def verify_observation_pair(ca: Camera, cb: Camera, t: int, t2: int, tent: Tentative, rel: np.ndarray | None,
+                            cfg: MatchConfig, rng: np.random.Generator, screened: _Screened | None = None) -> Verified:
+    """Loose epipolar gate from the initial relative pose `rel` (a at t -> b at t2), then USAC on the
+    essential matrix (or their outcome `screened`); at most `max_per_view_pair` inliers are kept (a random
+    subset)."""
+    scr = screened if screened is not None else screen_observation_pair(ca, cb, tent, rel, cfg)
+    idx, n_inl = scr.inliers, int(scr.inliers.size)
     if n_inl < cfg.min_per_view_pair:  # a handful of matches fits a spurious essential matrix
-        return Verified(ObservationPair(t, t2, tentative, int(sel.size), n_inl, 0), None)
-    idx = sel[inl]
+        return Verified(ObservationPair(t, t2, scr.tentative, scr.gated, n_inl, 0), None)
     if idx.size > cfg.max_per_view_pair:
         idx = np.sort(rng.choice(idx, cfg.max_per_view_pair, replace=False))
-    part = {"uva": tent.uv_a[idx], "uvb": tent.uv_b[idx], "ra": ra[idx], "rb": rb[idx], "siga": tent.sigma_a[idx],
-            "sigb": tent.sigma_b[idx], "ka": tent.kp_a[idx], "kb": tent.kp_b[idx]}
-    return Verified(ObservationPair(t, t2, tentative, int(sel.size), n_inl, int(idx.size)), part)
+    part = {"uva": tent.uv_a[idx], "uvb": tent.uv_b[idx], "ra": scr.ra[idx], "rb": scr.rb[idx],
+            "siga": tent.sigma_a[idx], "sigb": tent.sigma_b[idx], "ka": tent.kp_a[idx], "kb": tent.kp_b[idx]}
+    return Verified(ObservationPair(t, t2, scr.tentative, scr.gated, n_inl, int(idx.size)), part)
 
 
 def _consistent(ca: Camera, cb: Camera, verified: list[Verified], poses_a: np.ndarray, poses_b: np.ndarray,

@@ -72,15 +72,17 @@ def mark_fixed(frames: list[Keypoints], radius_px: float = 1.0, min_cosine: floa
     from scipy.spatial import cKDTree
 
     trees = [cKDTree(k.uv) if len(k) else None for k in frames]
+    unit = [k.desc / np.maximum(np.linalg.norm(k.desc, axis=1, keepdims=True), 1e-12) for k in frames]
     for i, k in enumerate(frames):
+        if trees[i] is None:
+            continue
         for j, tree in enumerate(trees):
-            if j == i or tree is None or not len(k):
+            if j == i or tree is None:
                 continue
-            for a, near in enumerate(tree.query_ball_point(k.uv, radius_px)):
-                if near and not k.fixed[a]:
-                    d = frames[j].desc[near]
-                    cos = d @ k.desc[a] / np.maximum(np.linalg.norm(d, axis=1) * np.linalg.norm(k.desc[a]), 1e-12)
-                    k.fixed[a] = bool(cos.max() >= min_cosine)
+            near = trees[i].sparse_distance_matrix(tree, radius_px, output_type="ndarray")  # pairs within the radius
+            a, b = near["i"], near["j"]
+            cos = np.einsum("nd,nd->n", unit[i][a], unit[j][b])
+            k.fixed[a[cos >= min_cosine]] = True
 
 
 SIFT_UPSCALE_OFFSET_PX = 0.25
@@ -125,16 +127,12 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float = 0.8
     """Mutual nearest neighbours that pass Lowe's ratio test in both directions: index arrays (ia, ib)."""
     if desc_a.shape[0] < 2 or desc_b.shape[0] < 2:
         return np.zeros(0, int), np.zeros(0, int)
-    bf = cv2.BFMatcher(cv2.NORM_L2)
 
     def best(d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
         """For each row of d1, the index of its ratio-test match in d2, or -1."""
-        knn = bf.knnMatch(d1, d2, k=2)
-        out = np.full(d1.shape[0], -1)
-        for m in knn:
-            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-                out[m[0].queryIdx] = m[0].trainIdx
-        return out
+        # brute force's two nearest neighbours as arrays (what BFMatcher.knnMatch computes, without its objects)
+        dist, nn = cv2.batchDistance(d1, d2, cv2.CV_32F, normType=cv2.NORM_L2, K=2)
+        return np.where(dist[:, 0] < ratio * dist[:, 1], nn[:, 0], -1).astype(int)
 
     ab = best(desc_a, desc_b)
     ba = best(desc_b, desc_a)
