@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from sgde_plugin.calib import calibrate
+from sgde_plugin.calib.acceptance import BETA_SIFT
 from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
 from sgde_plugin.calib.outliers import epipolar_angle_deg
 from sgde_plugin.calib.simulate import box_world_rig
@@ -18,14 +19,14 @@ def box():
         return box_world_rig(n_frames=2, seed=1)
 
 
-def _matches(box, config=None):
-    """Correspondences of the box world's window (with `config`) and its ego poses."""
+def _matches(box, config=None, beta=BETA_SIFT):
+    """Correspondences of the box world's window (with `config` and `beta`) and its ego poses."""
     _, rig, images = box
     ego = np.stack([f.ego_to_world for f in rig.frames])
     ids = [f.id for f in rig.frames]
     with torch_threads(1):
         return find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
-                                    config=config), ego
+                                    config=config, beta=beta), ego
 
 
 @pytest.fixture(scope="module")
@@ -50,9 +51,11 @@ def _errors(rig, rig_true):
 def test_a_pair_seen_only_across_time_is_observed(box):
     """C2's half towards C3 is black in frame 1 and C3's half towards C2 in frame 0: no same-frame observation
     pair of C2-C3 has a match, C2 at frame 0 against C3 at frame 1 does. The window is accepted, C2-C3 is
-    `observed` (not `through ring`) and lands as close as the pairs seen in both frames (measured: 0.14 deg
-    against 0.03-0.17, from 0.3-1.7 deg). Measured with bilinear views, kept here: with the Lanczos views of
-    session 6 (the default) it lands at 0.19 deg against 0.02-0.15."""
+    `observed` (not `through ring`) and lands as close as the pairs seen in both frames. C2-C3 keeps no
+    same-frame observation pair, so the window gets every same-camera link (`auto_links`; measured: 0.14 deg
+    against 0.03-0.17, from 0.3-1.7 deg; without the links 0.11 against 0.07-0.11). Measured with bilinear
+    views, kept here: with the Lanczos views of session 6 (the default) it landed at 0.19 deg against
+    0.02-0.15."""
     rig_true, rig, images = box
     w = images["000000"]["C2"].shape[1]
     seen = {f: dict(c) for f, c in images.items()}
@@ -67,6 +70,7 @@ def test_a_pair_seen_only_across_time_is_observed(box):
     by_frames = {(t, t2): n for t, t2, n in pair["observation_pairs"]}
     assert by_frames.get((0, 0), 0) == 0 and by_frames.get((1, 1), 0) == 0 and by_frames[(0, 1)] >= 50
     assert pair["status"] == "observed" and pair["observation_pairs_passing_beta"] == 1
+    assert pair["same_frame_observation_pairs_passing_beta"] == 0 and win["same_camera_links"] == "all"
     rot, trans = _errors(out, rig_true)
     rot0, _ = _errors(rig, rig_true)
     assert rot0.min() > 0.25 and rot[2] < 0.2 and rot[2] <= np.delete(rot, 2).max() and trans.max() < 0.03
@@ -114,3 +118,17 @@ def test_mono_links_keep_every_verified_same_camera_match_through_beta(box, link
         few = pm_m.observed_with(10**6)  # no observation pair passes: no correspondence left to touch
         assert len(few) == 0 and [len(x) for x in few.links] == [len(x) for x in pm_m.links]
         assert all(len(x) == 0 for x in pm_t.observed_with(10**6).links)
+
+
+def test_a_window_whose_pair_keeps_no_same_frame_observation_gets_every_link(box):
+    """`auto_links`: the box world's pairs each keep same-frame observation pairs at the default beta, so the
+    window gets no links; when beta leaves none (10^6), it gets every verified same-camera link, the same as
+    `mono_links` asks for; with `auto_links=False` none."""
+    plain, _ = _matches(box)
+    assert all(pm.same_frame_views(BETA_SIFT) == 2 for pm in plain) and not any(pm.links for pm in plain)
+    strict, _ = _matches(box, beta=10**6)
+    mono, _ = _matches(box, MatchConfig(temporal_links=True, mono_links=True))
+    assert [[len(x) for x in pm.links] for pm in strict] == [[len(x) for x in pm.links] for pm in mono]
+    assert sum(len(x) for pm in strict for x in pm.links) > 0 and all(x.standalone for pm in strict for x in pm.links)
+    off, _ = _matches(box, MatchConfig(auto_links=False), beta=10**6)
+    assert not any(pm.links for pm in off)

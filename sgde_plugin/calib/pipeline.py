@@ -123,6 +123,8 @@ def _pair_rows(matches: list[PairMatches], used: list[PairMatches], result: Meth
             "inliers_used": int(pu.inliers),
             "image_pairs_with_inliers": int(pm.view_pairs),
             "observation_pairs_passing_beta": int(pu.view_pairs),
+            "same_frame_observation_pairs_passing_beta": int(pm.same_frame_views(beta)),
+            "same_camera_links": int(sum(len(link) for link in pu.links)),
             "beta": int(beta),
             "used_in_adjustment": bool(in_ba and result.pair_used_matches.get(key, 0) > 0),
             "adjusted_correspondences": int(result.pair_used_matches.get(key, 0)) if in_ba else 0,
@@ -132,6 +134,13 @@ def _pair_rows(matches: list[PairMatches], used: list[PairMatches], result: Meth
             "observation_pairs": [[o.t, o.t2, o.inliers] for o in pm.observation_pairs if o.tentative > 0],
         })
     return rows
+
+
+def _links_kept(matches: list[PairMatches]) -> str:
+    """Which same-camera links the window's adjustment had: "all" (`mono_links`), "touching" (`temporal_links`
+    alone: those that extend a pair's tracks) or "none"."""
+    links = [link for pm in matches for link in pm.links]
+    return "all" if any(link.standalone for link in links) else "touching" if links else "none"
 
 
 def _changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], pairs) -> tuple[float, float]:
@@ -256,13 +265,13 @@ def _match_window(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego:
                   start: Mapping[str, np.ndarray]) -> list[PairMatches]:
     """Correspondences of a window (from the match cache when the same window was matched from the same start)."""
     ids = [f.id for f in win]
-    key = (tuple(ids), repr(setup.match), tuple(start[n].tobytes() for n in sorted(start)),
-           tuple(repr(c.intrinsics.to_dict()) for c in cams))
+    key = (tuple(ids), repr(setup.match), setup.rules.min_correspondences,
+           tuple(start[n].tobytes() for n in sorted(start)), tuple(repr(c.intrinsics.to_dict()) for c in cams))
     if setup.match_cache is not None and key in setup.match_cache:
         return setup.match_cache[key]
     matches = find_correspondences(cams, setup.pairs, ego,
                                    lambda t, c: setup.load(ids[t], c), setup.masks or None, setup.match,
-                                   setup.timings, setup.show_progress)
+                                   setup.timings, setup.show_progress, setup.rules.min_correspondences)
     if setup.match_cache is not None:
         setup.match_cache[key] = matches
     return matches
@@ -336,6 +345,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "rule": j.verdict.rule,
         "reason": j.verdict.reason,
         "rules_fired": [{"rule": r, "reason": why} for r, why in j.verdict.fired_list()],
+        "same_camera_links": _links_kept(j.matches),
         "pairs": _pair_rows(j.matches, j.used, j.result, translation_changes(start, after, setup.pairs),
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),
