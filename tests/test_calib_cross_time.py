@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from sgde_plugin.calib import calibrate
-from sgde_plugin.calib.acceptance import BETA_SIFT
 from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
 from sgde_plugin.calib.outliers import epipolar_angle_deg
 from sgde_plugin.calib.simulate import box_world_rig
@@ -19,14 +18,14 @@ def box():
         return box_world_rig(n_frames=2, seed=1)
 
 
-def _matches(box, config=None, beta=BETA_SIFT):
-    """Correspondences of the box world's window (with `config` and `beta`) and its ego poses."""
+def _matches(box, config=None):
+    """Correspondences of the box world's window (with `config`) and its ego poses."""
     _, rig, images = box
     ego = np.stack([f.ego_to_world for f in rig.frames])
     ids = [f.id for f in rig.frames]
     with torch_threads(1):
         return find_correspondences(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c],
-                                    config=config, beta=beta), ego
+                                    config=config), ego
 
 
 @pytest.fixture(scope="module")
@@ -48,32 +47,62 @@ def _errors(rig, rig_true):
     return np.array([r["rotation_deg"] for r in rows]), np.array([r["translation_m"] for r in rows])
 
 
-def test_a_pair_seen_only_across_time_is_observed(box):
-    """C2's half towards C3 is black in frame 1 and C3's half towards C2 in frame 0: no same-frame observation
-    pair of C2-C3 has a match, C2 at frame 0 against C3 at frame 1 does. The window is accepted, C2-C3 is
-    `observed` (not `through ring`) and lands as close as the pairs seen in both frames. C2-C3 keeps no
-    same-frame observation pair, so the window gets every same-camera link (`auto_links`; measured: 0.14 deg
-    against 0.03-0.17, from 0.3-1.7 deg; without the links 0.11 against 0.07-0.11). Measured with bilinear
-    views, kept here: with the Lanczos views of session 6 (the default) it landed at 0.19 deg against
-    0.02-0.15."""
-    rig_true, rig, images = box
+def _seen_only_across_time(box):
+    """The box world's images with C2's half towards C3 black in frame 1 and C3's half towards C2 in frame 0."""
+    _, _, images = box
     w = images["000000"]["C2"].shape[1]
     seen = {f: dict(c) for f, c in images.items()}
     seen["000001"]["C2"] = images["000001"]["C2"].copy()
     seen["000001"]["C2"][:, w // 2:] = 0
     seen["000000"]["C3"] = images["000000"]["C3"].copy()
     seen["000000"]["C3"][:, : w // 2] = 0
-    out, block = calibrate(rig, lambda f, c: seen[f][c], match_config=MatchConfig(view_interpolation="linear"))
+    return seen
+
+
+@pytest.fixture(scope="module")
+def across_time(box):
+    """`calibrate` on the box world seen only across time by C2-C3: (extrinsics, window report) with and
+    without `auto_links`."""
+    seen = _seen_only_across_time(box)
+    return {auto: calibrate(box[1], lambda f, c: seen[f][c], show_progress=False,
+                            match_config=MatchConfig(view_interpolation="linear", auto_links=auto))
+            for auto in (True, False)}
+
+
+def test_a_pair_seen_only_across_time_is_observed(box, across_time):
+    """C2's half towards C3 is black in frame 1 and C3's half towards C2 in frame 0: no same-frame observation
+    pair of C2-C3 has a match, C2 at frame 0 against C3 at frame 1 does. The window is accepted, C2-C3 is
+    `observed` (not `through ring`) and lands as close as the pairs seen in both frames (measured without
+    same-camera links: 0.11 deg against 0.07-0.11, from 0.3-1.7 deg; with the Lanczos views of session 6, the
+    default, 0.19 against 0.02-0.15; bilinear views are kept here)."""
+    rig_true, rig, _ = box
+    out, block = across_time[False]
     win = block["windows"][0]
     assert win["accepted"] and win["rules_fired"] == []
     pair = next(p for p in win["pairs"] if (p["a"], p["b"]) == ("C2", "C3"))
     by_frames = {(t, t2): n for t, t2, n in pair["observation_pairs"]}
     assert by_frames.get((0, 0), 0) == 0 and by_frames.get((1, 1), 0) == 0 and by_frames[(0, 1)] >= 50
     assert pair["status"] == "observed" and pair["observation_pairs_passing_beta"] == 1
-    assert pair["same_frame_observation_pairs_passing_beta"] == 0 and win["same_camera_links"] == "all"
+    assert pair["same_frame_observation_pairs_passing_beta"] == 0
+    assert win["same_camera_links"] == "none" and win["links_because"] == []
     rot, trans = _errors(out, rig_true)
     rot0, _ = _errors(rig, rig_true)
     assert rot0.min() > 0.25 and rot[2] < 0.2 and rot[2] <= np.delete(rot, 2).max() and trans.max() < 0.03
+
+
+def test_a_weak_pair_seen_only_across_time_gets_every_same_camera_link(box, across_time):
+    """`auto_links` (the default): C2-C3 keeps no same-frame observation pair and its rotation 1-sigma comes out
+    above 0.02 deg, so the window is matched and adjusted again with every verified same-camera link, the
+    report says why, and the pair still lands within the others' errors (measured: 0.14 deg against
+    0.03-0.17; on this 2-frame toy the links do not help); the other pairs' sigmas do not trigger it."""
+    rig_true = box[0]
+    out, block = across_time[True]
+    win = block["windows"][0]
+    assert win["accepted"] and win["same_camera_links"] == "all"
+    assert len(win["links_because"]) == 1 and win["links_because"][0].startswith("C2-C3: no same-frame")
+    assert sum(p["same_camera_links"] for p in win["pairs"]) > 0
+    rot, trans = _errors(out, rig_true)
+    assert rot[2] < 0.2 and rot[2] <= np.delete(rot, 2).max() and trans.max() < 0.03
 
 
 def test_track_links_join_one_camera_across_frames_and_follow_the_ego_motion(box, linked):
@@ -119,16 +148,3 @@ def test_mono_links_keep_every_verified_same_camera_match_through_beta(box, link
         assert len(few) == 0 and [len(x) for x in few.links] == [len(x) for x in pm_m.links]
         assert all(len(x) == 0 for x in pm_t.observed_with(10**6).links)
 
-
-def test_a_window_whose_pair_keeps_no_same_frame_observation_gets_every_link(box):
-    """`auto_links`: the box world's pairs each keep same-frame observation pairs at the default beta, so the
-    window gets no links; when beta leaves none (10^6), it gets every verified same-camera link, the same as
-    `mono_links` asks for; with `auto_links=False` none."""
-    plain, _ = _matches(box)
-    assert all(pm.same_frame_views(BETA_SIFT) == 2 for pm in plain) and not any(pm.links for pm in plain)
-    strict, _ = _matches(box, beta=10**6)
-    mono, _ = _matches(box, MatchConfig(temporal_links=True, mono_links=True))
-    assert [[len(x) for x in pm.links] for pm in strict] == [[len(x) for x in pm.links] for pm in mono]
-    assert sum(len(x) for pm in strict for x in pm.links) > 0 and all(x.standalone for pm in strict for x in pm.links)
-    off, _ = _matches(box, MatchConfig(auto_links=False), beta=10**6)
-    assert not any(pm.links for pm in off)

@@ -15,7 +15,6 @@ from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..progress import progress
 from ..threads import opencv_threads
-from .acceptance import BETA_SIFT
 from .dense_pairs import DenseConfig, frame_matches, same_orientation_view
 from .features import Keypoints, load_loftr, loftr_match, mark_fixed, match_descriptors, sift_features, to_gray
 from .guided import GuidedConfig, guided_search
@@ -62,8 +61,11 @@ class MatchConfig:
     guided_cross_time: bool = True
     temporal_links: bool = False  # same-camera matches between consecutive frames that extend the pairs' tracks
     mono_links: bool = False  # with temporal_links: keep every verified same-camera match, not only the pairs' tracks
-    # a window in which an adjacent pair keeps no same-frame observation pair passing beta gets both of the above
+    # calibrate: a window whose adjacent pair keeps no same-frame observation pair passing beta and comes out of the
+    # adjustment with a rotation 1-sigma above auto_links_sigma_deg is matched and adjusted again with both of the
+    # above (errors run 1.4-4 sigmas, the target bound is 0.05 deg: a pair beyond 0.02 deg is likely out of it)
     auto_links: bool = True
+    auto_links_sigma_deg: float = 0.02
     guided: GuidedConfig = field(default_factory=GuidedConfig)
     static: StaticConfig = field(default_factory=StaticConfig)  # matches across time on static points only
     # sub-pixel patch alignment of the verified keypoints along their tracks (`refine.py`): True, False, or "auto",
@@ -233,7 +235,6 @@ def find_correspondences(
     config: MatchConfig | None = None,
     timings: Timings | None = None,
     show_progress: bool | None = None,
-    beta: int = BETA_SIFT,
 ) -> list[PairMatches]:
     """Correspondences of every adjacent pair over the window whose ego poses are `ego_to_world` (T, 4, 4).
 
@@ -241,11 +242,7 @@ def find_correspondences(
     ego body. The initial extrinsics of `cameras` predict the overlaps and the loose epipolar gate.
     `ego_to_world` may also be (T, M, 4, 4): each camera's own ego pose at its capture (cameras in the
     order of `cameras`). Stages: overlap prediction, features, tentative matches and verification per
-    observation pair (two images), assembly per camera pair, then the same-camera links: with
-    `config.auto_links`, every verified one (`temporal_links` and `mono_links`) when some pair keeps no
-    same-frame observation pair with `beta` inliers, since such a pair's relative pose rests on matches across
-    time alone, and each camera's own motion over the window then pins its orientation to the direction of
-    travel.
+    observation pair (two images), assembly per camera pair, then the same-camera links (`temporal_links`).
     """
     cfg = _checked(config or MatchConfig())
     cfg = replace(cfg, refine=refines_keypoints(cfg, cameras))
@@ -279,8 +276,6 @@ def find_correspondences(
     if feats is not None and cfg.dense.enabled:
         verified = _with_dense(cams, pairs, poses, verified, view_images, images, masks, cfg, timings)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
-    if cfg.auto_links and any(pm.same_frame_views(beta) == 0 for pm in out):
-        cfg = replace(cfg, temporal_links=True, mono_links=True)
     if feats is not None:
         out = _refine_and_link(out, feats, view_images, cams, poses, cfg, T, timings)
     return out

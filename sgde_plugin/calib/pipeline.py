@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -265,13 +265,13 @@ def _match_window(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego:
                   start: Mapping[str, np.ndarray]) -> list[PairMatches]:
     """Correspondences of a window (from the match cache when the same window was matched from the same start)."""
     ids = [f.id for f in win]
-    key = (tuple(ids), repr(setup.match), setup.rules.min_correspondences,
-           tuple(start[n].tobytes() for n in sorted(start)), tuple(repr(c.intrinsics.to_dict()) for c in cams))
+    key = (tuple(ids), repr(setup.match), tuple(start[n].tobytes() for n in sorted(start)),
+           tuple(repr(c.intrinsics.to_dict()) for c in cams))
     if setup.match_cache is not None and key in setup.match_cache:
         return setup.match_cache[key]
     matches = find_correspondences(cams, setup.pairs, ego,
                                    lambda t, c: setup.load(ids[t], c), setup.masks or None, setup.match,
-                                   setup.timings, setup.show_progress, setup.rules.min_correspondences)
+                                   setup.timings, setup.show_progress)
     if setup.match_cache is not None:
         setup.match_cache[key] = matches
     return matches
@@ -286,13 +286,41 @@ class Judged:
     result: MethodResult | None
     matches: list[PairMatches]
     used: list[PairMatches]
+    links_for: list[str] = field(default_factory=list)  # why the window was redone with every same-camera link
 
 
 def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
            start: dict[str, np.ndarray]) -> Judged:
-    """Match, apply beta per observation pair, check the ring is constrained, adjust, check the result."""
+    """Match, apply beta per observation pair, check the ring is constrained, adjust, check the result; with
+    `MatchConfig.auto_links`, once more with every same-camera link when a pair seen only across time came out
+    weakly determined (`_weak_unseen_pairs`)."""
     if setup.method == "none":
         return Judged(Verdict(True), MethodResult(dict(start), message="input extrinsics kept"), [], [])
+    judged = _judge_matches(setup, cams, win, ego, start)
+    why = _weak_unseen_pairs(setup, judged, len(win))
+    if not why:
+        return judged
+    linked = replace(setup, match=replace(setup.match, temporal_links=True, mono_links=True))
+    return replace(_judge_matches(linked, cams, win, ego, start), links_for=why)
+
+
+def _weak_unseen_pairs(setup: Setup, judged: Judged, n_frames: int) -> list[str]:
+    """The adjacent pairs that keep no same-frame observation pair passing beta and whose relative rotation the
+    adjustment determined to worse than `MatchConfig.auto_links_sigma_deg` (empty when links do not apply)."""
+    cfg = setup.match
+    if (not cfg.auto_links or (cfg.temporal_links and cfg.mono_links) or cfg.matcher != "sift" or not cfg.cross_time
+            or n_frames < 2 or judged.result is None):
+        return []
+    beta = setup.rules.min_correspondences
+    sigma = judged.result.pair_rotation_sigma_deg
+    return [f"{pm.cam_a}-{pm.cam_b}: no same-frame observation pair with {beta} inliers, rotation sigma "
+            f"{sigma[(pm.cam_a, pm.cam_b)]:.3f} deg" for pm in judged.matches
+            if pm.same_frame_views(beta) == 0 and sigma.get((pm.cam_a, pm.cam_b), 0.0) > cfg.auto_links_sigma_deg]
+
+
+def _judge_matches(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
+                   start: dict[str, np.ndarray]) -> Judged:
+    """One round of `_judge`: match, beta, ring check, adjustment, result check."""
     matches = _match_window(setup, cams, win, ego, start)
     used = [pm.observed_with(setup.rules.min_correspondences) for pm in matches]
     verdict = check_correspondences({(u.cam_a, u.cam_b): u.view_pairs for u in used}, setup.rules, setup.reference)
@@ -346,6 +374,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "reason": j.verdict.reason,
         "rules_fired": [{"rule": r, "reason": why} for r, why in j.verdict.fired_list()],
         "same_camera_links": _links_kept(j.matches),
+        "links_because": j.links_for,
         "pairs": _pair_rows(j.matches, j.used, j.result, translation_changes(start, after, setup.pairs),
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),
