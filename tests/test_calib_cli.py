@@ -54,6 +54,16 @@ def test_refine_keypoints_flags_force_the_refinement(folder, tmp_path, flag, on)
     assert block["keypoint_refinement"] is on and block["windows"][0]["accepted"]
 
 
+@pytest.mark.parametrize("mode,kept", [("all", "all"), ("touching", "touching"), ("off", "none")])
+def test_links_option_sets_the_same_camera_links(folder, tmp_path, mode, kept):
+    """`--links` chooses which same-camera links the adjustment gets; the window report says which it had."""
+    out = tmp_path / "rig.json"
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", "--links", mode]) == 0
+    win = read_rig_json(out).extra["calibration"]["windows"][0]
+    assert win["accepted"] and win["same_camera_links"] == kept and win["links_because"] == []
+    assert (sum(p["same_camera_links"] for p in win["pairs"]) > 0) == (mode != "off")
+
+
 def _broken_rig(folder, tmp_path, edit):
     doc = json.loads((folder / "rig.json").read_text())
     edit(doc)

@@ -16,6 +16,11 @@ HELP = "refine the extrinsics of a rig folder (GLC bundle adjustment) and write 
 METHODS = ("glc", "wo-glc", "pairwise", "none")
 
 
+# --links: the MatchConfig fields of each mode
+LINK_MODES = {"auto": {}, "all": {"temporal_links": True, "mono_links": True}, "touching": {"temporal_links": True},
+              "off": {"auto_links": False}}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of `sgde calibrate`."""
     parser.add_argument("dir", help="rig folder (sgde-rig/1 or a supported data set)")
@@ -46,6 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sift: move each verified keypoint to the sub-pixel position where its patch aligns "
                              "with its track's (calib/refine.py; default: on when the rig has a non-pinhole camera, "
                              "MatchConfig.refine='auto')")
+    parser.add_argument("--links", choices=LINK_MODES, default="auto",
+                        help="sift: same-camera matches between consecutive frames in the adjustment: 'auto' (every "
+                             "one, when a pair seen only across time comes out with a rotation 1-sigma above 0.02 "
+                             "deg: the window is redone with them), 'all', 'touching' (those that extend a pair's "
+                             "tracks) or 'off'")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
@@ -104,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
     rules = AcceptanceRules(min_correspondences=beta, max_translation_change_m=args.alpha,
                             max_iterations=args.max_iterations)
     acfg = AdjustConfig() if args.refine_focal is None else AdjustConfig(refine_focal=args.refine_focal)
-    mcfg = MatchConfig() if args.refine_keypoints is None else MatchConfig(refine=args.refine_keypoints)
+    refine = {} if args.refine_keypoints is None else {"refine": args.refine_keypoints}
+    mcfg = MatchConfig(**refine, **LINK_MODES[args.links])
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
                                loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg)
     write_rig_json(out_rig, args.out)
