@@ -119,6 +119,7 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
         row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
                                                 if p["status"] == "through ring"],
+                               "same_camera_links": w["same_camera_links"], "links_because": w["links_because"],
                                "rotation_sigma_deg": [p["rotation_sigma_deg"] for p in w["pairs"]],
                                "rotation_deg": [r["rotation_deg"] for r in relative_pose_errors(out, seq.rig_true)],
                                **_pose_errors(out, seq.rig_true)}
@@ -195,6 +196,7 @@ def run(fast: bool = False, peer: str | None = None, scale: float = ACCURACY_SCA
             "seconds": {k: round(v, 3) for k, v in timings.seconds.items()},
             "accepted": block["windows"][0]["accepted"],
             "rule": block["windows"][0]["rule"],
+            "same_camera_links": block["windows"][0]["same_camera_links"],
             "inliers": [p["inliers"] for p in block["windows"][0]["pairs"]],
             **_pose_errors(out, seq.rig_true),
             "load_average": [load_before, os.getloadavg()],
