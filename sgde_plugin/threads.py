@@ -48,5 +48,6 @@ def blas_threads(n: int = 1) -> contextlib.AbstractContextManager:
 
     For numpy work on small matrices or already spread over threads of its own (the adjustment: about 100
     unknowns), where BLAS threads spinning per call cost more than they gain; a fixed count also keeps
-    results independent of the machine's core count (the summation order of a product depends on it)."""
+    results independent of the machine's core count (the summation order of a product depends on it). The count
+    is the libraries' own, so it holds for the whole process while the block runs."""
     return threadpool_limits(n, user_api="blas")
