@@ -55,7 +55,7 @@ class VirtualView:
 def overlap_view(
     cam: Camera, grid: OverlapGrid, hfov_deg: float = 110.0, vfov_deg: float = 100.0,
     other: Camera | None = None, crop: bool = False, pad_deg: float = 10.0, upsample: float = 1.0,
-    pair_scale: str = "min", level: bool = False,
+    pair_scale: str = "min", level: bool = False, trim_margin_px: int = 16,
 ) -> VirtualView | None:
     """A virtual pinhole of `cam` looking at the centre of its same-frame overlap in `grid`, or None.
 
@@ -69,6 +69,7 @@ def overlap_view(
     (its y axis points down along gravity) instead of following the camera's own roll and pitch: the two
     views of a pair then share one orientation up to the small difference of their axes (the random rigs'
     cameras differ by up to 15 degrees of pitch, and their own-axis views by 4-11 degrees of roll).
+    The view is then cut to where the camera has data, `trim_margin_px` around it (see `_trimmed`).
     """
     T = grid.mask.shape[0]
     same = np.any(grid.mask[np.arange(T), np.arange(T)], axis=0)
@@ -110,4 +111,30 @@ def overlap_view(
     K = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
     virtual = Camera(f"{cam.name}.overlap", Pinhole(w, h, K, None), pose)
     map_x, map_y, valid = camera_maps(cam, virtual, default_rim_px(cam))
-    return VirtualView(virtual, map_x, map_y, valid, R, own / f)
+    return _trimmed(VirtualView(virtual, map_x, map_y, valid, R, own / f), trim_margin_px)
+
+
+_OCTAVE_STEP = 32
+
+
+def _trimmed(view: VirtualView, margin_px: int) -> VirtualView:
+    """The view cut to the box of its valid pixels grown by `margin_px` (zeros kept around the data so that
+    SIFT's blurs see the same edge): a pinhole view of a pinhole camera aimed off-axis is about half empty,
+    and SIFT's pyramid costs per pixel, empty or not."""
+    rows, cols = np.nonzero(view.valid)
+    if rows.size == 0:
+        return view
+    h, w = view.valid.shape
+    # the corner on a multiple of SIFT's coarsest step keeps every octave's grid where it was
+    y0 = max(0, rows.min() - margin_px) // _OCTAVE_STEP * _OCTAVE_STEP
+    x0 = max(0, cols.min() - margin_px) // _OCTAVE_STEP * _OCTAVE_STEP
+    y1, x1 = min(h, rows.max() + 1 + margin_px), min(w, cols.max() + 1 + margin_px)
+    if (y1 - y0) * (x1 - x0) >= 0.95 * h * w:
+        return view
+    K = view.camera.intrinsics.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    camera = Camera(view.camera.name, Pinhole(x1 - x0, y1 - y0, K, None), view.camera.sensor_to_ego)
+    box = (slice(y0, y1), slice(x0, x1))
+    return VirtualView(camera, view.map_x[box].copy(), view.map_y[box].copy(), view.valid[box].copy(), view.R,
+                       view.step)
