@@ -244,6 +244,31 @@ def find_correspondences(
     order of `cameras`). Stages: overlap prediction, features, tentative matches and verification per
     observation pair (two images), assembly per camera pair, then the same-camera links (`temporal_links`).
     """
+    cfg = config or MatchConfig()
+    window = match_window(cameras, pairs, ego_to_world, image, masks, cfg, timings, show_progress)
+    return with_links(window, cfg, timings)
+
+
+@dataclass
+class WindowMatches:
+    """A window's correspondences without same-camera links, and what `with_links` needs to add them later
+    without detecting and matching again: the features, the cameras, their poses per frame, the keypoints'
+    refined positions (None without the refinement)."""
+
+    pairs: list[PairMatches]
+    feats: dict[tuple[int, str, str], Keypoints] | None
+    cams: dict[str, Camera]
+    poses: dict[str, np.ndarray]
+    positions: dict | None
+    frames: int
+
+
+def match_window(
+    cameras: Sequence[Camera], pairs: Sequence[tuple[str, str]], ego_to_world: np.ndarray,
+    image: Callable[[int, str], np.ndarray], masks: dict[str, np.ndarray] | None = None,
+    config: MatchConfig | None = None, timings: Timings | None = None, show_progress: bool | None = None,
+) -> WindowMatches:
+    """`find_correspondences` up to the same-camera links (which `config`'s link settings do not change)."""
     cfg = _checked(config or MatchConfig())
     cfg = replace(cfg, refine=refines_keypoints(cfg, cameras))
     timings = timings or Timings()
@@ -276,8 +301,29 @@ def find_correspondences(
     if feats is not None and cfg.dense.enabled:
         verified = _with_dense(cams, pairs, poses, verified, view_images, images, masks, cfg, timings)
     out = [assemble_pair(a, b, verified[(a, b)]) for a, b in pairs]
-    if feats is not None:
-        out = _refine_and_link(out, feats, view_images, cams, poses, cfg, T, timings)
+    positions = None
+    if feats is not None and cfg.refine:
+        t0 = time.perf_counter()
+        out, facts = refine_matches(out, view_images, cams, poses, cfg.refinement)
+        positions = facts["positions"]
+        timings.add("refine", t0)
+    return WindowMatches(out, feats, cams, poses, positions, T)
+
+
+def with_links(window: WindowMatches, config: MatchConfig, timings: Timings | None = None) -> list[PairMatches]:
+    """The window's pairs, each with its same-camera links when `config.temporal_links` asks for them (SIFT
+    only); the pairs of `window` are left as they are (a new PairMatches per pair carries the links)."""
+    if not (config.temporal_links and config.cross_time and window.frames > 1 and window.feats is not None):
+        return window.pairs
+    timings = timings or Timings()
+    t0 = time.perf_counter()
+    out = []
+    for pm in window.pairs:
+        links = temporal_links(window.cams, pm, window.feats, window.poses, config, window.frames)
+        if window.positions is not None:  # links share keypoints with the tracks: the same refined positions
+            links = [apply_positions(link, window.positions, window.cams) for link in links]
+        out.append(replace(pm, links=links))
+    timings.add("matching", t0)
     return out
 
 
@@ -329,23 +375,6 @@ def _merged(v: Verified, dense: Verified) -> Verified:
     return Verified(counts, part, v.guided)
 
 
-def _refine_and_link(out: list[PairMatches], feats: dict, view_images: dict, cams: dict[str, Camera],
-                     poses: dict[str, np.ndarray], cfg: MatchConfig, T: int, timings: Timings) -> list[PairMatches]:
-    """The optional keypoint refinement along tracks, then the temporal links (on the refined positions)."""
-    positions = None
-    if cfg.refine:
-        t0 = time.perf_counter()
-        out, facts = refine_matches(out, view_images, cams, poses, cfg.refinement)
-        positions = facts["positions"]
-        timings.add("refine", t0)
-    if cfg.temporal_links and cfg.cross_time and T > 1:
-        _add_temporal_links(out, cams, feats, poses, cfg, T, timings)
-        if positions is not None:  # links share keypoints with the tracks: the same refined positions
-            for pm in out:
-                pm.links = [apply_positions(link, positions, cams) for link in pm.links]
-    return out
-
-
 def _window_features(cameras: Sequence[Camera], cams: dict[str, Camera], pairs: Sequence[tuple[str, str]],
                      grids: dict, T: int, images: _ImageCache, masks: dict[str, np.ndarray] | None,
                      poses: dict[str, np.ndarray], cfg: MatchConfig, timings: Timings, show_progress: bool | None,
@@ -379,15 +408,6 @@ def _checked(cfg: MatchConfig) -> MatchConfig:
         raise InputError(None, "view_interpolation", f"unknown interpolation {cfg.view_interpolation!r} "
                          f"(expected {', '.join(VIEW_INTERPOLATIONS)})")
     return cfg
-
-
-def _add_temporal_links(out: list[PairMatches], cams: dict[str, Camera], feats: dict,
-                        poses: dict[str, np.ndarray], cfg: MatchConfig, T: int, timings: Timings) -> None:
-    """Attach each pair's same-camera track links (`temporal_links`), timed as matching."""
-    t0 = time.perf_counter()
-    for pm in out:
-        pm.links = temporal_links(cams, pm, feats, poses, cfg, T)
-    timings.add("matching", t0)
 
 
 def temporal_links(cams: dict[str, Camera], pm: PairMatches, feats: dict, poses: dict[str, np.ndarray],

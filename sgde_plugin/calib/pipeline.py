@@ -41,7 +41,7 @@ from .acceptance import (
     translation_changes,
 )
 from .ba import AdjustConfig
-from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, find_correspondences, refines_keypoints
+from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, match_window, refines_keypoints, with_links
 from .methods import METHODS, MethodResult, run_method
 
 CALIB_VERSION = "1"
@@ -169,7 +169,8 @@ def calibrate(
     rules (AcceptanceRules; default beta per observation pair for the matcher and data set, see
     acceptance.default_beta, 200 iterations, alpha = 0.3 m), match_config, adjust_config, reference,
     timings, show_progress, match_cache (a dict shared between calls on the same images, e.g. to compare
-    methods: correspondences are reused when window, matcher settings and starting extrinsics agree).
+    methods: features and matches are reused when window, matcher settings (same-camera links aside) and
+    starting extrinsics agree).
     """
     with torch_threads(1):
         setup = _setup(rig, images, method, frames, matcher, **options)
@@ -263,18 +264,19 @@ def window_ego_poses(rig: Rig, frames: Sequence[Frame], cameras: Sequence[str]) 
 
 def _match_window(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
                   start: Mapping[str, np.ndarray]) -> list[PairMatches]:
-    """Correspondences of a window (from the match cache when the same window was matched from the same start)."""
+    """Correspondences of a window; its features and matches come from the match cache when the same window
+    was matched from the same start with settings that differ at most in the same-camera links."""
     ids = [f.id for f in win]
-    key = (tuple(ids), repr(setup.match), tuple(start[n].tobytes() for n in sorted(start)),
+    unlinked = replace(setup.match, temporal_links=False, mono_links=False)
+    key = (tuple(ids), repr(unlinked), tuple(start[n].tobytes() for n in sorted(start)),
            tuple(repr(c.intrinsics.to_dict()) for c in cams))
-    if setup.match_cache is not None and key in setup.match_cache:
-        return setup.match_cache[key]
-    matches = find_correspondences(cams, setup.pairs, ego,
-                                   lambda t, c: setup.load(ids[t], c), setup.masks or None, setup.match,
-                                   setup.timings, setup.show_progress)
-    if setup.match_cache is not None:
-        setup.match_cache[key] = matches
-    return matches
+    window = None if setup.match_cache is None else setup.match_cache.get(key)
+    if window is None:
+        window = match_window(cams, setup.pairs, ego, lambda t, c: setup.load(ids[t], c), setup.masks or None,
+                              setup.match, setup.timings, setup.show_progress)
+        if setup.match_cache is not None:
+            setup.match_cache[key] = window
+    return with_links(window, setup.match, setup.timings)
 
 
 @dataclass
@@ -296,6 +298,8 @@ def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], e
     weakly determined (`_weak_unseen_pairs`)."""
     if setup.method == "none":
         return Judged(Verdict(True), MethodResult(dict(start), message="input extrinsics kept"), [], [])
+    if setup.match_cache is None:  # a second round reuses the first one's features and matches
+        setup = replace(setup, match_cache={})
     judged = _judge_matches(setup, cams, win, ego, start)
     why = _weak_unseen_pairs(setup, judged, len(win))
     if not why:
