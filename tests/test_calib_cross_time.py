@@ -1,11 +1,13 @@
 """Correspondences across time: a pair seen only across frames, and the same-camera track links
 (runtime ~10 s on 2 cores)."""
 
+from unittest import mock
+
 import numpy as np
 import pytest
 
-from sgde_plugin.calib import calibrate
-from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences
+from sgde_plugin.calib import calibrate, correspondences
+from sgde_plugin.calib.correspondences import MatchConfig, find_correspondences, match_window, with_links
 from sgde_plugin.calib.outliers import epipolar_angle_deg
 from sgde_plugin.calib.simulate import box_world_rig
 from sgde_plugin.pairs import relative_pose_errors
@@ -64,9 +66,13 @@ def across_time(box):
     """`calibrate` on the box world seen only across time by C2-C3: (extrinsics, window report) with and
     without `auto_links`."""
     seen = _seen_only_across_time(box)
-    return {auto: calibrate(box[1], lambda f, c: seen[f][c], show_progress=False,
-                            match_config=MatchConfig(view_interpolation="linear", auto_links=auto))
-            for auto in (True, False)}
+    runs, detections = {}, {}
+    for auto in (True, False):
+        with mock.patch.object(correspondences, "detect_features", wraps=correspondences.detect_features) as spy:
+            runs[auto] = calibrate(box[1], lambda f, c: seen[f][c], show_progress=False,
+                                   match_config=MatchConfig(view_interpolation="linear", auto_links=auto))
+        detections[auto] = spy.call_count
+    return {**runs, "detections": detections}
 
 
 def test_a_pair_seen_only_across_time_is_observed(box, across_time):
@@ -103,6 +109,25 @@ def test_a_weak_pair_seen_only_across_time_gets_every_same_camera_link(box, acro
     assert sum(p["same_camera_links"] for p in win["pairs"]) > 0
     rot, trans = _errors(out, rig_true)
     assert rot[2] < 0.2 and rot[2] <= np.delete(rot, 2).max() and trans.max() < 0.03
+    # the second round reuses the first one's features and matches: one detection per window either way
+    assert across_time["detections"] == {True: 1, False: 1}
+
+
+def test_links_added_to_a_matched_window_equal_those_of_a_fresh_match(box, linked):
+    """`with_links` on `match_window`'s result gives what `find_correspondences` with the links gives, array for
+    array, and leaves the window's own pairs without links (a first round's matches stay as they were)."""
+    _, rig, images = box
+    matches, ego = linked
+    ids = [f.id for f in rig.frames]
+    with torch_threads(1):
+        window = match_window(list(rig.cameras), list(rig.pairs), ego, lambda t, c: images[ids[t]][c])
+        added = with_links(window, MatchConfig(temporal_links=True))
+    assert all(not pm.links for pm in window.pairs)
+    assert [len(pm.links) for pm in added] == [len(pm.links) for pm in matches] and any(pm.links for pm in added)
+    for pm_a, pm_m in zip(added, matches):
+        for la, lm in zip(pm_a.links, pm_m.links):
+            for key in ("frame_a", "frame_b", "kp_a", "kp_b", "rays_a", "rays_b"):
+                np.testing.assert_array_equal(getattr(la, key), getattr(lm, key))
 
 
 def test_track_links_join_one_camera_across_frames_and_follow_the_ego_motion(box, linked):
