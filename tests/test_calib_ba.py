@@ -304,3 +304,16 @@ def test_rotation_sigma_predicts_the_error_and_flags_an_undetermined_camera(scen
     assert sigma3[(2, 3)] > 1.0 and sigma3[(3, 4)] > 1.0
     assert max(v for p, v in sigma3.items() if 3 not in p) < 0.1
     assert np.linalg.norm(res3.sensor_to_ego[3, :3, 3] - S0[3, :3, 3]) < 0.01
+
+
+def test_per_point_sums_equal_add_at_bit_for_bit():
+    """The adjustment's per-point sums (bincount) are np.add.at's, bit for bit, for vectors and 3x3 blocks."""
+    from sgde_plugin.calib.schur import per_point_sum
+
+    rng = np.random.default_rng(3)
+    point = rng.integers(0, 300, 5000)
+    for shape in ((3,), (3, 3)):
+        values = rng.normal(size=(5000, *shape))
+        expected = np.zeros((301, *shape))
+        np.add.at(expected, point, values)
+        np.testing.assert_array_equal(per_point_sum(point, values, 301), expected)

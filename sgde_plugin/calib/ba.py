@@ -375,8 +375,9 @@ class _Problem:
         S[self.ref] = S_ref
         return S
 
-    def obs_terms(self, st: _State, jacobians: bool):
-        """Residuals (N, 2); with `jacobians` also d r / d pose (N, 2, 12) and d r / d point (N, 2, 3).
+    def obs_terms(self, st: _State, jacobians: bool, poses: bool = True):
+        """Residuals (N, 2); with `jacobians` also d r / d pose (N, 2, 12; None without `poses`) and
+        d r / d point (N, 2, 3).
 
         With P = anchor + m / rho the direction to the point is that of q = rho * (camera-frame P), which
         stays finite for points at infinity: q = R_m^T (R_t^T (rho (anchor - c_t) + m) - rho p_m).
@@ -408,16 +409,18 @@ class _Problem:
         if self.maps is not None:
             extra = [A @ dq_ds[:, :, None]]  # d r / d s of the observation's camera
             A = A @ dq_dq
-        RmT = RmT_all[o.camera]
-        A_RmT = A @ RmT
         A_C = A @ C  # A R_m^T E_R^T R_t^T
-        v = np.einsum("nji,nj->ni", RmT, q_cam)  # R_m q: the point before the camera's rotation
-        # a @ skew(w) for each row a is the cross product a x w
-        J_pose = np.concatenate(
-            [np.cross(A_C, h[:, None, :]), -rho[:, None, None] * A_C, np.cross(A_RmT, v[:, None, :]),
-             -rho[:, None, None] * A_RmT] + extra, axis=2,
-        )  # (N, 2, 12), (N, 2, 13) with the focal scale
-        J_pose[self.is_ref, :, 6:12] = 0.0
+        J_pose = None
+        if poses:
+            RmT = RmT_all[o.camera]
+            A_RmT = A @ RmT
+            v = np.einsum("nji,nj->ni", RmT, q_cam)  # R_m q: the point before the camera's rotation
+            # a @ skew(w) for each row a is the cross product a x w
+            J_pose = np.concatenate(
+                [np.cross(A_C, h[:, None, :]), -rho[:, None, None] * A_C, np.cross(A_RmT, v[:, None, :]),
+                 -rho[:, None, None] * A_RmT] + extra, axis=2,
+            )  # (N, 2, 12), (N, 2, 13) with the focal scale
+            J_pose[self.is_ref, :, 6:12] = 0.0
         e1, e2 = tangent_basis(st.m)
         B = np.stack([e1, e2], axis=2)[o.point]  # (N, 3, 2) tangent basis of m
         d_rho = np.einsum("nij,nj->ni", C, a - ct) - d  # R_m^T (E_R^T R_t^T (a - c_t) - E_R^T E_t - p_m)

@@ -23,8 +23,7 @@ def lm_step(prob: _Problem, st: _State, lam: float) -> tuple[_State, float]:
     keep = prob.solve_idx
     dp = np.zeros(n)
     dp[keep] = np.linalg.solve(S[np.ix_(keep, keep)], rhs[keep])
-    back = np.zeros((K, 3))
-    np.add.at(back, o.point, (np.swapaxes(Hpl, 1, 2) @ dp[prob.pose_idx][:, :, None])[:, :, 0])
+    back = per_point_sum(o.point, (np.swapaxes(Hpl, 1, 2) @ dp[prob.pose_idx][:, :, None])[:, :, 0], K)
     dl = -(Hll_inv @ (gl + back)[:, :, None])[:, :, 0]
     trial = prob.apply(st, dp, dl)
     for _ in range(prob.cfg.point_iterations):
@@ -41,10 +40,8 @@ def reduced_system(prob: _Problem, st: _State, lam: float):
     _, w = prob.loss(np.sum(r * r, axis=1), prob.cfg.f_scale)
     Jl_wT = np.swapaxes(Jl * w[:, None, None], 1, 2)
     Jp_wT = np.swapaxes(Jp * w[:, None, None], 1, 2)
-    Hll = np.zeros((K, 3, 3))
-    np.add.at(Hll, o.point, Jl_wT @ Jl)
-    gl = np.zeros((K, 3))
-    np.add.at(gl, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
+    Hll = per_point_sum(o.point, Jl_wT @ Jl, K)
+    gl = per_point_sum(o.point, (Jl_wT @ r[:, :, None])[:, :, 0], K)
     Hpp = np.bincount(prob.flat_pp, weights=(Jp_wT @ Jp).ravel(), minlength=n * n).reshape(n, n).astype(float)
     gp = np.bincount(prob.pose_idx.ravel(), weights=(Jp_wT @ r[:, :, None]).ravel(), minlength=n).astype(float)
     for x, blocks in prob.prior_terms(st):
@@ -83,19 +80,26 @@ def refine_points(prob: _Problem, st: _State) -> None:
     """One Gauss-Newton step per point with the poses held, kept only where it lowers that point's cost."""
     o = prob.obs
     K = st.P.shape[0]
-    r, _, Jl = prob.obs_terms(st, jacobians=True)
+    r, _, Jl = prob.obs_terms(st, jacobians=True, poses=False)
     _, w = prob.loss(np.sum(r * r, axis=1), prob.cfg.f_scale)
     Jl_wT = np.swapaxes(Jl * w[:, None, None], 1, 2)
-    H = np.zeros((K, 3, 3))
-    np.add.at(H, o.point, Jl_wT @ Jl)
-    g = np.zeros((K, 3))
-    np.add.at(g, o.point, (Jl_wT @ r[:, :, None])[:, :, 0])
+    H = per_point_sum(o.point, Jl_wT @ Jl, K)
+    g = per_point_sum(o.point, (Jl_wT @ r[:, :, None])[:, :, 0], K)
     H += 1e-9 * np.einsum("kii->k", H)[:, None, None] * np.eye(3)[None] + 1e-12 * np.eye(3)[None]
     before = point_costs(prob, r, K)
     old_m, old_rho = st.m, st.rho
     prob.move_points(st, -np.linalg.solve(H, g[:, :, None])[:, :, 0])
     worse = point_costs(prob, prob.obs_terms(st, jacobians=False), K) > before
     st.m[worse], st.rho[worse] = old_m[worse], old_rho[worse]
+
+
+def per_point_sum(point: np.ndarray, values: np.ndarray, n_points: int) -> np.ndarray:
+    """Sum of per-observation arrays (N, ...) over each point's observations: (n_points, ...). The same sums in
+    the same order as `np.add.at` (bit for bit), in a fraction of its time."""
+    width = int(np.prod(values.shape[1:], dtype=int))
+    flat = (point[:, None] * width + np.arange(width)).ravel()
+    out = np.bincount(flat, weights=values.reshape(-1), minlength=n_points * width)
+    return out.reshape((n_points, *values.shape[1:]))
 
 
 def point_costs(prob: _Problem, r: np.ndarray, n_points: int) -> np.ndarray:
