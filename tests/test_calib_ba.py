@@ -14,7 +14,7 @@ from sgde_plugin.calib.ba import (
 )
 from sgde_plugin.calib.correspondences import PairMatches
 from sgde_plugin.calib.methods import observations
-from sgde_plugin.calib.schur import _point_terms, reduced_system
+from sgde_plugin.calib.schur import _point_terms, per_point_sum, reduced_system
 from sgde_plugin.calib.simulate import perturb_extrinsics, simulate_observations, straight_drive
 from sgde_plugin.cameras import Camera, Pinhole
 from sgde_plugin.geometry import (
@@ -308,8 +308,6 @@ def test_rotation_sigma_predicts_the_error_and_flags_an_undetermined_camera(scen
 
 def test_per_point_sums_equal_add_at_bit_for_bit():
     """The adjustment's per-point sums (bincount) are np.add.at's, bit for bit, for vectors and 3x3 blocks."""
-    from sgde_plugin.calib.schur import per_point_sum
-
     rng = np.random.default_rng(3)
     point = rng.integers(0, 300, 5000)
     for shape in ((3,), (3, 3)):
