@@ -615,10 +615,9 @@ def _detection_plan(cams: dict[str, Camera], name: str, grids: dict[tuple[str, s
 def _image_features(cam: Camera, picture: np.ndarray, det: np.ndarray | None, views: dict[str, VirtualView],
                     static: np.ndarray | None, cfg: MatchConfig) -> tuple[Keypoints | None, dict]:
     """SIFT of one image: on the raw image inside `det` (None: not asked) and on each neighbour's view."""
-    gray = to_gray(picture)  # once per picture; views resample grey (a third of the work of resampling colour)
-    kp = None if det is None else sift_features(gray, det, cfg.max_features, cfg.feature_scale,
+    kp = None if det is None else sift_features(picture, det, cfg.max_features, cfg.feature_scale,
                                                  cfg.contrast_threshold)
-    return kp, {o: _view_features(cam, view, gray, static, slot, cfg)
+    return kp, {o: _view_features(cam, view, picture, static, slot, cfg)
                 for slot, (o, view) in enumerate(views.items())}
 
 
@@ -794,7 +793,9 @@ def _view_features(cam: Camera, view: VirtualView, image: np.ndarray, static: np
     mask = view.valid.copy()
     if static is not None:
         mask &= view.warp(static.astype(np.uint8), cv2.INTER_NEAREST) > 0
-    gray = view.warp(to_gray(image), VIEW_INTERPOLATIONS[cfg.view_interpolation], antialias=cfg.antialias_views)
+    # colour resampled, then grey: resampling grey costs a third but moved nuscenes' seeds 0-3 (half size) from
+    # 0.012 / 0.023 deg mean median / max to 0.014 / 0.027 (session 15)
+    gray = to_gray(view.warp(image, VIEW_INTERPOLATIONS[cfg.view_interpolation], antialias=cfg.antialias_views))
     kv = sift_features(gray, mask.astype(np.uint8) * 255, cfg.max_features, 1.0, cfg.contrast_threshold)
     uv, ok = cam.intrinsics.project(view.rays_in_source(kv.uv))
     scale = pixels_per_radian(cam.intrinsics) / float(view.camera.intrinsics.K[0, 0])

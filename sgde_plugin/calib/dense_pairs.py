@@ -116,7 +116,7 @@ def frame_matches(cam_a: Camera, cam_b: Camera, view_a: VirtualView, gray_a: np.
                   view_b: VirtualView, image_b: np.ndarray, mask_b: np.ndarray | None, interpolation: int,
                   cfg: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
     """Dense matches (camera pixels uv_a, uv_b) of one frame of a camera pair, from a's view image `gray_a`."""
-    gray_b = view_b.warp(to_gray(image_b), interpolation)
+    gray_b = to_gray(view_b.warp(image_b, interpolation))
     usable_b = view_b.valid.copy()
     if mask_b is not None:
         usable_b &= view_b.warp(mask_b.astype(np.uint8), cv2.INTER_NEAREST) > 0
