@@ -46,3 +46,35 @@ def test_lanczos_views_keep_keypoints_where_the_blobs_are():
     assert min(len(v) for v in err.values()) > 300
     assert med["lanczos"] < 0.7 * med["linear"], med
     assert med["linear"] < 0.03 and med["lanczos"] < 0.015, med
+
+
+def test_a_view_is_cut_to_where_its_camera_has_data():
+    """A pinhole view turned 35 degrees off a pinhole camera's axis is mostly empty; `_trimmed` keeps every valid
+    pixel with the same samples (maps, rays) and a 16 px margin, its corner on SIFT's 32 px octave grid, and
+    drops the rest (here over a third of the pixels)."""
+    from sgde_plugin.calib.views import _trimmed
+    from sgde_plugin.geometry import make_transform, rodrigues
+    from sgde_plugin.stereo.rectify import camera_maps
+
+    src = Camera("c", Pinhole(400, 240, np.array([[300.0, 0, 199.5], [0, 300.0, 119.5], [0, 0, 1]])), np.eye(4))
+    R = rodrigues(np.array([0.0, np.radians(35.0), 0.0]))
+    virtual = Camera("v", Pinhole(600, 500, np.array([[300.0, 0, 299.5], [0, 300.0, 249.5], [0, 0, 1]])),
+                     make_transform(R, np.zeros(3)))
+    mx, my, valid = camera_maps(src, virtual)
+    view = VirtualView(virtual, mx, my, valid, R, 1.0)
+    cut = _trimmed(view, 16)
+    x0 = int(round(virtual.intrinsics.K[0, 2] - cut.camera.intrinsics.K[0, 2]))
+    y0 = int(round(virtual.intrinsics.K[1, 2] - cut.camera.intrinsics.K[1, 2]))
+    h, w = cut.valid.shape
+    assert x0 % 32 == 0 and y0 % 32 == 0 and (cut.camera.intrinsics.width, cut.camera.intrinsics.height) == (w, h)
+    assert cut.valid.sum() == valid.sum() > 0 and h * w < 0.65 * valid.size
+    np.testing.assert_array_equal(cut.map_x, mx[y0:y0 + h, x0:x0 + w])
+    np.testing.assert_array_equal(cut.map_y, my[y0:y0 + h, x0:x0 + w])
+    rows, cols = np.nonzero(cut.valid)
+    H, W = valid.shape
+    assert rows.min() >= 16 or y0 == 0
+    assert cols.min() >= 16 or x0 == 0
+    assert h - 1 - rows.max() >= 16 or y0 + h == H
+    assert w - 1 - cols.max() >= 16 or x0 + w == W
+    uv = np.stack([cols, rows], 1)[::97].astype(float)
+    np.testing.assert_allclose(cut.rays_in_source(uv), view.rays_in_source(uv + [x0, y0]), atol=1e-12)
