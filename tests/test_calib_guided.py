@@ -105,10 +105,12 @@ def _true_epipolar_px(seq, ids, a, b, pm):
 
 def test_guided_matching_raises_a_narrow_overlaps_observation_pairs_over_beta(narrow_seq):
     """Rendered random rig (seed 12), the 9.8-degree overlap CAM_00-CAM_01 over 4 frames from the noisy start:
-    descriptor matching alone verifies fewer than beta = 15 inliers in every observation pair; with guided
-    matching several pass, and their matches lie within a pixel of the true epipolar lines. Guided matching
-    (opt-in) was developed on bilinear views; with the Lanczos views of session 6 no observation pair of this
-    overlap reaches 15 (README, known limits), so this test keeps bilinear views."""
+    descriptor matching alone verifies fewer than beta = 15 inliers in every observation pair (at most 9, 17 in
+    all); with guided matching an observation pair passes and the window's inliers grow several-fold (measured
+    since session 15's views cut to the camera's data: 107 in all, observation pairs of 18, 13, 13, 13; before,
+    109 with 18 and 15, the second exactly at beta), and the matches lie within a pixel of the true epipolar
+    lines. Guided matching (opt-in) was developed on bilinear views; with the Lanczos views of session 6 no
+    observation pair of this overlap reaches 15 (README, known limits), so this test keeps bilinear views."""
     seq = narrow_seq
     rig, ids = seq.rig, [f.id for f in seq.rig.frames]
     ego = window_ego_poses(rig, rig.frames, rig.camera_names)
@@ -121,8 +123,8 @@ def test_guided_matching_raises_a_narrow_overlaps_observation_pairs_over_beta(na
     plain, guided = out[0], out[30]
     assert max(o.inliers for o in plain.observation_pairs) < 15
     passing = [o for o in guided.observation_pairs if o.inliers >= 15]
-    assert len(passing) >= 2
-    assert guided.inliers >= 2 * plain.inliers
+    assert len(passing) >= 1
+    assert guided.inliers >= 4 * plain.inliers
     err = _true_epipolar_px(seq, ids, "CAM_00", "CAM_01", guided)
     assert np.median(err) < 0.5 and np.mean(err < 1.5) > 0.85
 
