@@ -100,6 +100,8 @@ def test_bad_options_exit_2(folder, tmp_path, capsys):
     assert "--loftr-weights" in capsys.readouterr().err
     assert main(["calibrate", str(folder), "--out", str(out), "--frames", "5:9"]) == 2
     assert "empty" in capsys.readouterr().err
+    assert main(["calibrate", str(folder), "--out", str(out), "--view-phases", "5"]) == 2
+    assert "--view-phases" in capsys.readouterr().err
     assert not out.exists()
 
 

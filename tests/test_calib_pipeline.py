@@ -170,3 +170,31 @@ def test_bad_initial_extrinsics_are_input_errors(box):
         calibrate(rig.with_extrinsics({"C3": skew}), lambda f, c: images[f][c])
     with pytest.raises(InputError, match="method"):
         calibrate(rig, lambda f, c: images[f][c], method="bundle")
+
+
+def test_view_phases_average_the_runs_with_moved_view_grids(box):
+    """`MatchConfig.view_phases=2`: the window is matched and adjusted with the views at phase (0, 0) and (0.5, 0.5)
+    and the result is the mean of the two runs' extrinsics (each run equals a single run at that phase); the
+    report says how far each run's relative rotations are from the mean."""
+    from dataclasses import replace
+
+    from sgde_plugin.calib import MatchConfig
+    from sgde_plugin.geometry import mean_transform
+
+    rig_true, rig, images = box
+    load = lambda f, c: images[f][c]  # noqa: E731
+    one = MatchConfig()
+    runs = [calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phase=p))[0]
+            for p in ((0.0, 0.0), (0.5, 0.5))]
+    out, block = calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phases=2))
+    w = block["windows"][0]
+    assert w["accepted"] and [p["phase"] for p in w["view_phases"]] == [[0.0, 0.0], [0.5, 0.5]]
+    for cam in out.cameras:
+        expected = mean_transform(np.stack([r.camera(cam.name).sensor_to_ego for r in runs]))
+        np.testing.assert_allclose(cam.sensor_to_ego, expected, atol=1e-12)
+    # the two runs differ (the views sample other sub-pixel positions), each by half their difference from the mean
+    diffs = [max(p["pair_rotation_from_mean_deg"].values()) for p in w["view_phases"]]
+    assert min(diffs) > 1e-5 and np.isclose(diffs[0], diffs[1], rtol=0.05)
+    assert errors(out, rig_true)[0].max() < 0.15
+    with pytest.raises(InputError, match="view_phases"):
+        calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phases=5))

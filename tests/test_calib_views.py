@@ -78,3 +78,39 @@ def test_a_view_is_cut_to_where_its_camera_has_data():
     assert w - 1 - cols.max() >= 16 or x0 + w == W
     uv = np.stack([cols, rows], 1)[::97].astype(float)
     np.testing.assert_allclose(cut.rays_in_source(uv), view.rays_in_source(uv + [x0, y0]), atol=1e-12)
+
+
+def test_a_view_phase_moves_the_pixel_grid_by_that_fraction_of_a_pixel():
+    """`overlap_view(..., phase=(dx, dy))`: the same view (size, orientation, focal length) whose pixel (u, v) sees
+    the ray the unshifted view sees at (u - dx, v - dy); the maps sample the camera at the moved positions."""
+    from sgde_plugin.calib.overlap import overlap_grid
+    from sgde_plugin.calib.views import overlap_view
+    from sgde_plugin.geometry import camera_mount
+    from sgde_plugin.stereo.rectify import torch_threads
+
+    K = np.array([[200.0, 0, 159.5], [0, 200.0, 119.5], [0, 0, 1]])
+    front = Camera("F", Pinhole(320, 240, K), camera_mount(0.0, np.array([1.5, 0.0, 1.6])))
+    side = Camera("R", Pinhole(320, 240, K), camera_mount(-np.radians(55.0), np.array([1.2, -0.6, 1.6])))
+    with torch_threads(1):
+        grid = overlap_grid(front, side, np.eye(4)[None], margin_px=0.0)
+        base = overlap_view(front, grid, other=side, crop=True)
+        moved = overlap_view(front, grid, other=side, crop=True, phase=(0.5, 0.25))
+    assert base is not None and moved is not None
+    assert np.array_equal(base.R, moved.R)
+    assert np.array_equal(base.camera.intrinsics.K[:2, :2], moved.camera.intrinsics.K[:2, :2])  # focal length
+    # the principal point moves by the phase (plus whole 32 px steps where the cut to the data moved the corner)
+    shift = moved.camera.intrinsics.K[:2, 2] - base.camera.intrinsics.K[:2, 2]
+    np.testing.assert_allclose(np.mod(shift - [0.5, 0.25], 32.0), 0.0, atol=1e-9)
+    np.testing.assert_array_less(np.abs(np.subtract(base.valid.shape, moved.valid.shape)), 2)
+    rows, cols = np.nonzero(moved.valid)
+    uv = np.stack([cols, rows], 1)[::53].astype(float)
+    np.testing.assert_allclose(moved.rays_in_source(uv), base.rays_in_source(uv - shift), atol=1e-12)
+    # the camera is sampled elsewhere: on the pixels both views have (integer offset), the moved view's samples
+    # lie about half a view pixel (here about half a source pixel) left and a quarter above the base view's
+    whole = np.round(shift - [0.5, 0.25]).astype(int)
+    r_b, c_b = rows - whole[1], cols - whole[0]
+    inside = (r_b >= 0) & (r_b < base.valid.shape[0]) & (c_b >= 0) & (c_b < base.valid.shape[1])
+    inside[inside] &= base.valid[r_b[inside], c_b[inside]]
+    dx = base.map_x[r_b[inside], c_b[inside]] - moved.map_x[rows[inside], cols[inside]]
+    dy = base.map_y[r_b[inside], c_b[inside]] - moved.map_y[rows[inside], cols[inside]]
+    assert inside.sum() > 1000 and 0.3 < np.median(dx) < 0.7 and 0.1 < np.median(dy) < 0.4

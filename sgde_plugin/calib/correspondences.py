@@ -26,6 +26,9 @@ from .views import VIEW_INTERPOLATIONS, VirtualView, overlap_view
 
 MATCHERS = ("sift", "loftr")
 STAGES = ("features", "matching", "ransac", "adjustment")
+# sub-pixel phases of the overlap views (x, y), in the order `MatchConfig.view_phases` takes them: the second is
+# the farthest from the first, the four together a half-pixel lattice
+VIEW_PHASES = ((0.0, 0.0), (0.5, 0.5), (0.5, 0.0), (0.0, 0.5))
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,11 @@ class MatchConfig:
     level_views: bool = False
     antialias_views: bool = False
     view_interpolation: str = "lanczos"  # how views sample their camera: views.VIEW_INTERPOLATIONS
+    # calibrate: each window matched and adjusted this many times (1-4), the views' pixel grids moved by the first
+    # VIEW_PHASES, the accepted runs' extrinsics averaged (SIFT's positions on a resampled view vary with the
+    # grid's sub-pixel phase; averaging lowers that part of the error, at that many times the work)
+    view_phases: int = 1
+    view_phase: tuple[float, float] = (0.0, 0.0)  # the phase of this matching run (set by calibrate per run)
     cross_time: bool = True
     guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
     consensus_px: float = 1.5
@@ -631,9 +639,9 @@ def _overlap_views(cams: dict[str, Camera], name: str, neighbours: Sequence[str]
         return {}
     views = {}
     for o in neighbours:
-        view = (overlap_view(cam, grids[(name, o)], upsample=cfg.view_upsample) if fisheye else
+        view = (overlap_view(cam, grids[(name, o)], upsample=cfg.view_upsample, phase=cfg.view_phase) if fisheye else
                 overlap_view(cam, grids[(name, o)], other=cams[o], crop=True, upsample=cfg.view_upsample,
-                             pair_scale=cfg.view_pair_scale, level=cfg.level_views))
+                             pair_scale=cfg.view_pair_scale, level=cfg.level_views, phase=cfg.view_phase))
         if view is not None:
             views[o] = view
     return views

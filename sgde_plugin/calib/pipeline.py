@@ -26,7 +26,7 @@ import numpy as np
 
 from ..cameras import Camera, CameraModel
 from ..errors import InputError
-from ..geometry import ORTHONORMAL_TOL, rotation_angle_deg, rotation_error
+from ..geometry import ORTHONORMAL_TOL, invert_transform, mean_transform, rotation_angle_deg, rotation_error
 from ..rig import Frame, Rig
 from ..rigfile import intrinsics_from_dict
 from ..stereo.rectify import torch_threads
@@ -41,7 +41,16 @@ from .acceptance import (
     translation_changes,
 )
 from .ba import AdjustConfig
-from .correspondences import MATCHERS, MatchConfig, PairMatches, Timings, match_window, refines_keypoints, with_links
+from .correspondences import (
+    MATCHERS,
+    VIEW_PHASES,
+    MatchConfig,
+    PairMatches,
+    Timings,
+    match_window,
+    refines_keypoints,
+    with_links,
+)
 from .methods import METHODS, MethodResult, run_method
 
 CALIB_VERSION = "1"
@@ -146,9 +155,9 @@ def _links_kept(matches: list[PairMatches]) -> str:
 def _changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], pairs) -> tuple[float, float]:
     rot, trans = 0.0, 0.0
     for a, b in pairs:
-        r0 = np.linalg.inv(before[a]) @ before[b]
-        r1 = np.linalg.inv(after[a]) @ after[b]
-        rot = max(rot, float(rotation_angle_deg(r0[:3, :3].T @ r1[:3, :3])))
+        r0 = invert_transform(before[a]) @ before[b]
+        r1 = invert_transform(after[a]) @ after[b]
+        rot = max(rot, _relative_angle_deg(before, after, a, b))
         trans = max(trans, float(np.linalg.norm(r1[:3, 3] - r0[:3, 3])))
     return rot, trans
 
@@ -221,6 +230,8 @@ def _setup(
         raise InputError(None, "matcher", f"unknown matcher {matcher!r} (expected one of {', '.join(MATCHERS)})")
     if window < 1:
         raise InputError(None, "window", "must be at least 1 frame")
+    if match_config is not None and not 1 <= match_config.view_phases <= len(VIEW_PHASES):
+        raise InputError(None, "view_phases", f"must be 1 to {len(VIEW_PHASES)}, got {match_config.view_phases}")
     check_extrinsics(rig)
     selected = rig.frames if frames is None else rig.frames[frames]
     if not selected:
@@ -289,6 +300,7 @@ class Judged:
     matches: list[PairMatches]
     used: list[PairMatches]
     links_for: list[str] = field(default_factory=list)  # why the window was redone with every same-camera link
+    phases: list[dict] = field(default_factory=list)  # with MatchConfig.view_phases > 1: each run's outcome
 
 
 def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
@@ -306,6 +318,43 @@ def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], e
         return judged
     linked = replace(setup, match=replace(setup.match, temporal_links=True, mono_links=True))
     return replace(_judge_matches(linked, cams, win, ego, start), links_for=why)
+
+
+def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
+                  start: dict[str, np.ndarray]) -> Judged:
+    """`_judge` once per view phase (`MatchConfig.view_phases`); with more than one, the window is accepted when
+    more than half of the runs are, with the mean of their extrinsics and focal scales; matches, sigmas and the
+    rest of the report are the first accepted run's."""
+    phases = VIEW_PHASES[: setup.match.view_phases]
+    if len(phases) == 1 or setup.method == "none":
+        return _judge(rig, setup, cams, win, ego, start)
+    runs = [_judge(rig, replace(setup, match=replace(setup.match, view_phase=p)), cams, win, ego, start)
+            for p in phases]
+    ok = [r for r in runs if r.verdict.accepted and r.result is not None]
+    rows = [{"phase": list(p), "accepted": r.verdict.accepted, "rule": r.verdict.rule} for p, r in zip(phases, runs)]
+    if 2 * len(ok) <= len(runs):
+        first = next(r for r in runs if not r.verdict.accepted)
+        why = f"{len(ok)} of {len(runs)} view phases accepted; the first rejected: {first.verdict.reason}"
+        return replace(first, verdict=replace(first.verdict, reason=why), phases=rows)
+    names = list(ok[0].result.sensor_to_ego)
+    mean = {n: mean_transform(np.stack([r.result.sensor_to_ego[n] for r in ok])) for n in names}
+    for row, r in zip(rows, runs):  # how far each accepted run's adjacent relative rotations are from the mean's
+        if row["accepted"] and r.result is not None:
+            after = {**start, **r.result.sensor_to_ego}
+            centre = {**start, **mean}
+            row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(_relative_angle_deg(centre, after, a, b), 5)
+                                                  for a, b in setup.pairs}
+    scales = {n: float(np.mean([r.result.focal_scale.get(n, 1.0) for r in ok]))
+              for n in {n for r in ok for n in r.result.focal_scale}}
+    result = replace(ok[0].result, sensor_to_ego=mean, focal_scale=scales)
+    return replace(ok[0], result=result, phases=rows)
+
+
+def _relative_angle_deg(x: Mapping[str, np.ndarray], y: Mapping[str, np.ndarray], a: str, b: str) -> float:
+    """Angle (deg) between camera pair (a, b)'s relative rotations under extrinsics x and y."""
+    rx = invert_transform(x[a]) @ x[b]
+    ry = invert_transform(y[a]) @ y[b]
+    return float(rotation_angle_deg(rx[:3, :3].T @ ry[:3, :3]))
 
 
 def _weak_unseen_pairs(setup: Setup, judged: Judged, n_frames: int) -> list[str]:
@@ -364,7 +413,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
     ego = window_ego_poses(rig, win, involved)
     t_win = time.perf_counter()
     before = dict(setup.timings.seconds)
-    j = _judge(rig, setup, cams, win, ego, start)
+    j = _judge_phases(rig, setup, cams, win, ego, start)
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
     intr = dict(start_intr)
@@ -379,6 +428,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "rules_fired": [{"rule": r, "reason": why} for r, why in j.verdict.fired_list()],
         "same_camera_links": _links_kept(j.matches),
         "links_because": j.links_for,
+        "view_phases": j.phases,
         "pairs": _pair_rows(j.matches, j.used, j.result, translation_changes(start, after, setup.pairs),
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),

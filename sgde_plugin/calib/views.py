@@ -55,7 +55,7 @@ class VirtualView:
 def overlap_view(
     cam: Camera, grid: OverlapGrid, hfov_deg: float = 110.0, vfov_deg: float = 100.0,
     other: Camera | None = None, crop: bool = False, pad_deg: float = 10.0, upsample: float = 1.0,
-    pair_scale: str = "min", level: bool = False, trim_margin_px: int = 16,
+    pair_scale: str = "min", level: bool = False, trim_margin_px: int = 16, phase: tuple[float, float] = (0.0, 0.0),
 ) -> VirtualView | None:
     """A virtual pinhole of `cam` looking at the centre of its same-frame overlap in `grid`, or None.
 
@@ -69,7 +69,9 @@ def overlap_view(
     (its y axis points down along gravity) instead of following the camera's own roll and pitch: the two
     views of a pair then share one orientation up to the small difference of their axes (the random rigs'
     cameras differ by up to 15 degrees of pitch, and their own-axis views by 4-11 degrees of roll).
-    The view is then cut to where the camera has data, `trim_margin_px` around it (see `_trimmed`).
+    The view is then cut to where the camera has data, `trim_margin_px` around it (see `_trimmed`). `phase` moves
+    the view's pixel grid by that fraction of a pixel (x, y) against the scene (its principal point), so that a
+    second view samples the camera at other sub-pixel positions (`MatchConfig.view_phases`).
     """
     T = grid.mask.shape[0]
     same = np.any(grid.mask[np.arange(T), np.arange(T)], axis=0)
@@ -108,7 +110,7 @@ def overlap_view(
         x0, y0 = max(x0, np.floor(p[:, 0].min() - pad)), max(y0, np.floor(p[:, 1].min() - pad))
         x1, y1 = min(x1, p[:, 0].max() + pad), min(y1, p[:, 1].max() + pad)
         w, h = max(16, int(np.ceil(x1 - x0)) + 1), max(16, int(np.ceil(y1 - y0)) + 1)
-    K = np.array([[f, 0.0, -x0], [0.0, f, -y0], [0.0, 0.0, 1.0]])
+    K = np.array([[f, 0.0, phase[0] - x0], [0.0, f, phase[1] - y0], [0.0, 0.0, 1.0]])
     virtual = Camera(f"{cam.name}.overlap", Pinhole(w, h, K, None), pose)
     map_x, map_y, valid = camera_maps(cam, virtual, default_rim_px(cam))
     return _trimmed(VirtualView(virtual, map_x, map_y, valid, R, own / f), trim_margin_px)
