@@ -112,6 +112,9 @@ def test_fingerprint_follows_every_setting_but_the_runtime_ones(model):
         ("preset: mars\n", "preset: unknown preset 'mars'"),
         ("[1, 2]\n", "expected a mapping"),
         ("scale: [\n", "not valid YAML"),
+        ("sgbm: {p1: 100, p2: 1}\n", "p2: must be greater than p1"),
+        ("max_azimuth_deg: 0\n", "max_azimuth_deg: must be in (0, 90) degrees, got 0"),
+        ("margin_px: 100000\n", "margin_px: must be in [0, 1024] pixels, got 100000"),
     ],
 )
 def test_sgde_prior_refuses_a_bad_config_file_in_one_line(tmp_path, capsys, text, needle):
@@ -136,6 +139,60 @@ def test_bad_command_line_values_and_presets_are_one_line(tmp_path, capsys):
         assert code == 2 and len(err) == 1 and needle in err[0], (argv, err)
     with pytest.raises(InputError, match="block_size: must be odd"):
         PriorConfig.from_settings(block_size=4)
+
+
+# settings the build could not use (a ZeroDivisionError, OpenCV assertions, tens of GB allocated) or silently
+# misused (every frame empty, inflated confidences): one line naming the setting, exit 2, before the cache exists
+OUT_OF_RANGE = [
+    (["--max-azimuth-deg", "0"], "max_azimuth_deg: must be in (0, 90) degrees"),
+    (["--max-azimuth-deg", "500"], "max_azimuth_deg: must be in (0, 90) degrees"),
+    (["--max-azimuth-deg", "-10"], "max_azimuth_deg: must be in (0, 90) degrees"),
+    (["--max-elevation-deg", "95"], "max_elevation_deg: must be in (0, 90) degrees"),
+    (["--normalize", "local", "--normalize-sigma", "0"], "normalize_sigma: must be in (0, 1024] pixels"),
+    (["--margin-px", "100000"], "margin_px: must be in [0, 1024] pixels"),
+    (["--border-px", "100000"], "border_px: must be in [0, 1024] pixels"),
+    (["--confidence-disparity-px", "-2"], "confidence_disparity_px: must be positive"),
+    (["--p1", "-5"], "p1: must not be negative"),
+    (["--p1", "100", "--p2", "1"], "p2: must be greater than p1 (OpenCV SGBM needs P2 > P1), got p1 = 100, p2 = 1"),
+    (["--uniqueness", "-5"], "uniqueness: must be in [0, 100]"),
+    (["--speckle-window", "-1"], "speckle_window: must not be negative"),
+    (["--lr-max-diff", "-1"], "lr_max_diff: must be positive"),
+    (["--lr-max-diff", "0"], "lr_max_diff: must be positive"),
+    (["--min-zncc", "1"], "min_zncc: must be below 1"),
+    (["--max-abs-diff", "0"], "max_abs_diff: must be positive"),
+]
+
+
+@pytest.fixture(scope="module")
+def small_rig(tmp_path_factory):
+    synth = pytest.importorskip("sgde_plugin.synth.sequence")
+    return synth.write_synth("nuscenes", 1, tmp_path_factory.mktemp("rig") / "nus", scale=0.25)
+
+
+@pytest.mark.parametrize(("argv", "needle"), OUT_OF_RANGE)
+def test_out_of_range_settings_are_one_line_and_leave_no_cache(small_rig, tmp_path, capsys, argv, needle):
+    out = tmp_path / "cache"
+    code = cli_main(["prior", str(small_rig), "--out", str(out), "--workers", "1", *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], (argv, err)
+    assert not out.exists()
+
+
+def test_a_corrected_rerun_after_a_bad_setting_builds_into_the_same_out(small_rig, tmp_path, capsys):
+    out = str(tmp_path / "cache")
+    assert cli_main(["prior", str(small_rig), "--out", out, "--workers", "1", "--max-azimuth-deg", "0"]) == 2
+    assert cli_main(["prior", str(small_rig), "--out", out, "--workers", "1"]) == 0
+    assert "1 frames built" in capsys.readouterr().out
+
+
+def test_range_limits_keep_the_defaults_and_the_usable_edge_values():
+    edges = {"p1": 0, "p2": 1, "uniqueness": 0, "speckle_window": 0, "speckle_range": 0, "max_azimuth_deg": 89.9,
+             "max_elevation_deg": 0.5, "margin_px": 1024, "border_px": 0, "normalize_sigma": 0.1,
+             "lr_max_diff": 0.01, "confidence_disparity_px": 0.01, "min_zncc": -1.0, "max_abs_diff": 0.5}
+    config = PriorConfig.from_settings(edges)
+    assert all(config.get(name) == value for name, value in edges.items())
+    for preset in PRESETS:
+        load_prior_config(preset=preset)
 
 
 def test_sgde_prior_applies_preset_file_and_flags_to_the_cache_fingerprint(tmp_path, capsys):

@@ -10,7 +10,7 @@ groups the settings. `PriorConfig.from_settings` takes flat names and/or group m
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Union
@@ -151,6 +151,31 @@ _FLAT_NAMES = {("matcher", "name"): "matcher", ("matcher", "device"): "device",
                ("confidence", "disparity_px"): "confidence_disparity_px"}
 
 
+# margins, borders and smoothing windows, rectified px: more only blanks or bloats a canvas (an absurd
+# value made OpenCV / torch allocate tens of GB); real settings are a few to a few tens of pixels
+MAX_PAD_PX = 1024
+# flat setting -> (the values the code can use, the problem otherwise): checked before any work starts
+RANGES: dict[str, tuple[Callable[[float], bool], str]] = {
+    # SGBM (OpenCV): penalties and counts are non-negative; uniqueness is a percentage
+    "p1": (lambda v: v >= 0, "must not be negative"),
+    "uniqueness": (lambda v: 0 <= v <= 100, "must be in [0, 100] (percent)"),
+    "speckle_window": (lambda v: v >= 0, "must not be negative (0 = off)"),
+    "speckle_range": (lambda v: v >= 0, "must not be negative"),
+    # the rectified canvas is a tangent plane: its half-angles are tan()'d and cannot reach 90 degrees
+    "max_azimuth_deg": (lambda v: 0 < v < 90, "must be in (0, 90) degrees"),
+    "max_elevation_deg": (lambda v: 0 < v < 90, "must be in (0, 90) degrees"),
+    "margin_px": (lambda v: 0 <= v <= MAX_PAD_PX, f"must be in [0, {MAX_PAD_PX}] pixels"),
+    "border_px": (lambda v: 0 <= v <= MAX_PAD_PX, f"must be in [0, {MAX_PAD_PX}] pixels"),
+    "normalize_sigma": (lambda v: 0 < v <= MAX_PAD_PX, f"must be in (0, {MAX_PAD_PX}] pixels (a Gaussian sigma)"),
+    # divisors: the left-right disagreement / lr_max_diff, d / (d + confidence_disparity_px), the
+    # photometric factors (ncc - min_zncc) / (1 - min_zncc) and mad / max_abs_diff
+    "lr_max_diff": (lambda v: v > 0, "must be positive (pixels)"),
+    "confidence_disparity_px": (lambda v: v > 0, "must be positive (pixels)"),
+    "min_zncc": (lambda v: v < 1, "must be below 1"),
+    "max_abs_diff": (lambda v: v > 0, "must be positive (grey levels)"),
+}
+
+
 _PREFIXED = ("matcher", "sweep")  # groups whose flat names are "<group>_<field>"
 
 
@@ -278,9 +303,20 @@ class PriorConfig:
             raise InputError(None, "block_size", "must be odd")
         if m.iters is not None and m.iters < 1:
             raise InputError(None, "matcher_iters", "must be at least 1")
-        for name in ("refine_iterations", "min_region_px", "border_px", "margin_px", "min_texture"):
+        for name in ("refine_iterations", "min_region_px", "min_texture"):
             if self.get(name) < 0:
                 raise InputError(None, name, "must not be negative")
+        self._check_ranges()
+
+    def _check_ranges(self) -> None:
+        """One-line InputError for a setting outside `RANGES`, or SGBM penalties OpenCV cannot use."""
+        for name, (ok, problem) in RANGES.items():
+            value = self.get(name)
+            if not ok(value):
+                raise InputError(None, name, f"{problem}, got {value!r}")
+        if not self.sgbm.p2 > self.sgbm.p1:
+            raise InputError(None, "p2", f"must be greater than p1 (OpenCV SGBM needs P2 > P1), got p1 = "
+                             f"{self.sgbm.p1!r}, p2 = {self.sgbm.p2!r}")
 
     @property
     def learned(self) -> bool:
@@ -352,7 +388,8 @@ class PriorConfig:
 
 
 __all__ = [
-    "GROUPS", "LEARNED_MATCHERS", "MATCHERS", "MATCHER_DEFAULTS", "PRIOR_ALGO_VERSION", "RUNTIME_FIELDS", "SETTINGS",
+    "GROUPS", "LEARNED_MATCHERS", "MATCHERS", "MATCHER_DEFAULTS", "MAX_PAD_PX", "PRIOR_ALGO_VERSION", "RANGES",
+    "RUNTIME_FIELDS", "SETTINGS",
     "ConfidenceSettings", "FilterSettings", "GeometrySettings", "ImageSettings", "MatcherSettings", "PriorConfig",
     "SGBMSettings", "SWEEP_MATCHERS", "SweepSettings", "flatten_settings", "setting_type",
 ]
