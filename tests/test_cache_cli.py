@@ -6,6 +6,8 @@ Runtime ~10 s on 2 cores (400x225 cameras; rendering the synthetic rig dominates
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -62,3 +64,52 @@ def test_sgde_prior_builds_resumes_and_refuses_mixing(synth_dir, tmp_path, capsy
     assert "2 frames, 26 chunks read: ok" in capsys.readouterr().out
     assert cli_main(["cache", "info", out]) == 0
     assert cache.fingerprint in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def built(synth_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("built") / "cache"
+    assert cli_main(["prior", str(synth_dir), "--out", str(out), "--workers", "1"]) == 0
+    return out
+
+
+def _copy_with_marker(built, tmp_path, frame: int):
+    """A copy of the built cache and the path of one frame's done marker (its valid_pixels chunk)."""
+    out = tmp_path / "cache"
+    shutil.copytree(built, out)
+    (scene,) = [p for p in out.iterdir() if p.is_dir()]
+    return out, scene / "valid_pixels" / "c" / str(frame) / "0"
+
+
+def test_an_unreadable_done_marker_is_one_line_for_info_and_eval(synth_dir, built, tmp_path, capsys):
+    out, marker = _copy_with_marker(built, tmp_path, 1)
+    data = bytearray(marker.read_bytes())
+    data[2] ^= 0xFF
+    marker.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert cli_main(["cache", "info", str(out), "--json", str(tmp_path / "info.json")]) == 2
+    got = capsys.readouterr()
+    err = got.err.strip().splitlines()
+    assert len(err) == 1 and "/000001/*: its done marker (valid_pixels) is unreadable" in err[0], err
+    assert got.out == "" and not (tmp_path / "info.json").exists()
+    # eval refuses the damaged frame instead of leaving it out of the result
+    assert cli_main(["eval", str(synth_dir), "--cache", str(out), "--json", str(tmp_path / "e.json")]) == 2
+    got = capsys.readouterr()
+    err = got.err.strip().splitlines()
+    assert len(err) == 1 and "/000001/*: its done marker (valid_pixels) is unreadable" in err[0], err
+    assert got.out == "" and not (tmp_path / "e.json").exists()
+
+
+def test_eval_of_a_partly_built_cache_says_how_many_frames_it_lacks(synth_dir, built, tmp_path, capsys):
+    out, marker = _copy_with_marker(built, tmp_path, 1)
+    marker.unlink()  # as a build killed before it finished the frame leaves it
+    capsys.readouterr()
+    assert cli_main(["eval", str(synth_dir), "--cache", str(out)]) == 0
+    got = capsys.readouterr()
+    err = got.err.strip().splitlines()
+    assert err == [f"sgde eval: {out}: 1 of the 2 frames of {synth_dir} not in the cache (not built yet): "
+                   "the result covers the other 1"], err
+    assert got.out.startswith(f"{synth_dir}: 1 frames")
+    assert cli_main(["eval", str(synth_dir), "--cache", str(built)]) == 0  # a complete cache: nothing on stderr
+    got = capsys.readouterr()
+    assert got.err == "" and got.out.startswith(f"{synth_dir}: 2 frames")

@@ -12,6 +12,7 @@ from zarr.abc.store import Store
 from .backends import Location, location_name, open_root, open_store, store_keys
 from .fingerprints import CACHE_FORMAT, digest
 from .layout import frame_problems, missing_shards, open_arrays, read_counts, scene_groups, scene_problems
+from .reading import damaged
 from .store import list_scenes, scene_arrays
 
 
@@ -35,7 +36,10 @@ def cache_info(location: Location, storage_options: Mapping[str, Any] | None = N
             scenes.append({"scene": name, "frames_done": 0, "frames_total": 0, "note": "creation interrupted"})
             continue
         ids = list(attrs["frame_ids"])
-        counts = np.asarray(arrays["valid_pixels"][: len(ids)])
+        counts, unreadable = read_counts(arrays["valid_pixels"], len(ids))
+        if unreadable:  # a frame that may or may not be built: counting it either way would be wrong
+            fid = ids[min(unreadable)]
+            raise damaged(location_name(location), name, fid, "*", "its done marker (valid_pixels) is unreadable")
         done = counts[:, 0] >= 0
         prefix = f"{name}/"
         scene_bytes = sum(v for k, v in keys.items() if k.startswith(prefix))

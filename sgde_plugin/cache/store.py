@@ -28,7 +28,7 @@ chunks, below `PriorCache`). Their names are re-exported here.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +62,7 @@ from .layout import (  # noqa: F401 - re-exported
     scene_groups,
     scene_problems,
 )
-from .reading import OpenCache, OpenScene, open_cache
+from .reading import OpenCache, OpenScene, damaged, open_cache
 from .resample import resize_depth
 from .writer import FLOAT16_MAX, FLOAT16_MIN_POSITIVE, SceneWriter, encode_prior  # noqa: F401 - re-exported
 
@@ -201,6 +201,17 @@ class PriorCache:
                     "was built from other images, poses or timestamps than this rig's (the cache of another "
                     "scene?); refusing to use it",
                 )
+
+    def check_done_markers(self, frame_ids: Iterable[str]) -> None:
+        """Refuse (InputError naming scene and frame) a frame of `frame_ids` whose done marker does not
+        decode: damage, not a frame still to build (`frames()` leaves both out)."""
+        state = self._open()
+        for fid in frame_ids:
+            if fid in state.frames and fid not in state.duplicates:
+                name, fi = state.frames[fid]
+                if fi in state.scenes[name].unreadable:
+                    raise damaged(location_name(self.location), name, fid, "*",
+                                  "its done marker (valid_pixels) is unreadable")
 
     def get(self, frame_id: str, camera: str, size: tuple[int, int] | None = None,
             min_confidence: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

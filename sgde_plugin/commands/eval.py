@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 from ..errors import InputError
@@ -70,10 +71,15 @@ def run(args: argparse.Namespace) -> int:
     missing = [c for c in rig.camera_names if c not in cached_cams]
     if missing:
         raise InputError(args.cache, "cameras", f"has no priors for {', '.join(missing)}")
+    cache.check_done_markers(f.id for f in rig.frames)  # a damaged frame is refused, not left out
     cached = set(cache.frames())
     frames = [f for f in rig.frames if f.id in cached]
     if not frames:
         raise InputError(args.cache, "frames", f"none of the {len(rig.frames)} frames of {args.dir} is in the cache")
+    if len(frames) < len(rig.frames):  # a partial build: the result covers only the built frames, and says so
+        print(f"sgde eval: {args.cache}: {len(rig.frames) - len(frames)} of the {len(rig.frames)} frames of "
+              f"{args.dir} not in the cache (not built yet): the result covers the other {len(frames)}",
+              file=sys.stderr)
     if not any(f.depths or f.lidar is not None for f in frames):
         raise InputError(args.dir, "depth", "no ground-truth depth (depth PNGs or LiDAR) for the cached frames")
     masks = {c: rig.load_mask(c) for c in rig.camera_names}
