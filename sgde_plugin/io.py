@@ -19,6 +19,8 @@ from PIL import Image
 from .errors import InputError
 
 DEPTH_PNG_SCALE = 256.0
+DEPTH_PNG_PROBLEM = "not a single-channel uint16 depth PNG"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def is_plain_name(name: str) -> bool:
@@ -102,7 +104,7 @@ def _read_file(path: str | Path) -> bytes:
 def check_complete(data: bytes, path: str | Path) -> None:
     """InputError when PNG or JPEG bytes are cut short (no IEND chunk / no end-of-image marker) or a PNG
     chunk fails its CRC, which decoders would otherwise fill with grey or report only on stderr."""
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
+    if data[:8] == PNG_SIGNATURE:
         if b"IEND" not in data[-32:]:
             raise InputError(path, None, "truncated PNG (no IEND chunk)")
         _check_png_chunks(data, path)
@@ -171,7 +173,7 @@ def read_depth_png(path: str | Path) -> np.ndarray:
     """Read a KITTI-convention depth PNG to float32 metres (0 = no value)."""
     raw = _decode(path, cv2.IMREAD_UNCHANGED)
     if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
-        raise InputError(path, None, "not a single-channel uint16 depth PNG")
+        raise InputError(path, None, DEPTH_PNG_PROBLEM)
     return raw.astype(np.float32) / DEPTH_PNG_SCALE
 
 
@@ -194,10 +196,26 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise InputError(path, None, "not a readable PNG or JPEG image (header cut short)") from None
 
 
+def check_pixel_format(path: str | Path, depth: bool = False) -> None:
+    """InputError unless the file's header holds what a rig folder asks for (sgde-rig/1): a colour image
+    of 8 bits per channel, or with `depth` a single-channel 16-bit PNG. Reads the header only."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError as exc:
+        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
+    png = len(head) == 26 and head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR"
+    bits, colour_type = (head[24], head[25]) if png else (8, None)  # JPEG: 8-bit baseline
+    if depth and (bits, colour_type) != (16, 0):
+        raise InputError(path, None, DEPTH_PNG_PROBLEM)
+    if not depth and bits > 8:
+        raise InputError(path, None, f"not an 8-bit colour image ({bits} bits per channel)")
+
+
 def _header_size(path: Path) -> tuple[int, int]:
     with open(path, "rb") as f:
         head = f.read(32)
-        if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
             w, h = struct.unpack(">II", head[16:24])
             return int(w), int(h)
         if head[:2] == b"\xff\xd8":

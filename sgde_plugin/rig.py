@@ -13,7 +13,15 @@ import numpy as np
 from .cameras import Camera, CameraModel
 from .errors import InputError
 from .geometry import invert_transform
-from .io import atomic_write_text, image_size, is_plain_name, read_depth_png, read_image, read_mask
+from .io import (
+    atomic_write_text,
+    check_pixel_format,
+    image_size,
+    is_plain_name,
+    read_depth_png,
+    read_image,
+    read_mask,
+)
 from .lidar import LidarDepthConfig, LidarSweep, sweep_depth
 from .panorama import load_panorama_depth
 from .rigfile import MAX_MOUNT_M, intrinsics_from_dict, transform_field
@@ -424,16 +432,21 @@ def read_rig_folder(root: str | Path, check_images: bool = False) -> Rig:
 
 
 def check_folder_files(rig: Rig) -> None:
-    """Every frame has an image per camera whose size matches the camera; depth and masks likewise."""
+    """The rig has frames; every frame has an 8-bit image per camera whose size matches the camera;
+    depth PNGs (single-channel 16-bit) and masks likewise. Headers only."""
     assert rig.root is not None
+    if not rig.frames:
+        raise InputError(rig.root / "rig.json", "frames", "the rig has no frames")
     for fr in rig.frames:
         for cam in rig.cameras:
             path = fr.images.get(cam.name)
             if path is None:
                 raise InputError(rig.root / "frames" / fr.id, cam.name, "image missing")
             _check_size(path, cam)
+            check_pixel_format(path)
             if cam.name in fr.depths:
                 _check_size(fr.depths[cam.name], cam)
+                check_pixel_format(fr.depths[cam.name], depth=True)
     for name, path in rig.masks.items():
         _check_size(path, rig.camera(name))
 

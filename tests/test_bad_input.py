@@ -60,6 +60,9 @@ RIG_DEFECTS = {
     "absurd_mount": (lambda d: d["cameras"][0]["sensor_to_ego"][0].__setitem__(3, 1e6),
                      "cameras[CAM_FRONT].sensor_to_ego: translation of 1e+06 m is absurd"),
     "frame_id_dots": (lambda d: d["frames"][0].update(id=".."), "frames[0].id: missing or not a plain file name"),
+    "reflection": (lambda d: d["cameras"][0]["sensor_to_ego"][0].__setitem__(
+        slice(0, 3), [-v for v in d["cameras"][0]["sensor_to_ego"][0][:3]]),
+        "cameras[CAM_FRONT].sensor_to_ego: rotation has determinant -1 (a reflection)"),
 }
 
 
@@ -114,6 +117,65 @@ def test_damaged_images_are_refused_by_the_readers_without_decoder_noise(rig_dir
     assert capfd.readouterr().err == ""  # nothing from libpng on stderr
     _png(rig_dir).write_bytes(data)
     np.testing.assert_array_equal(read_image(_png(rig_dir)), expected)
+
+
+def _write_png(path: Path, pixels: np.ndarray) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), pixels)
+
+
+def _depth_8bit(root: Path) -> Path:
+    path = root / "depth" / "000000" / "CAM_FRONT.png"
+    _write_png(path, np.full(_camera_shape(root, "CAM_FRONT"), 7, np.uint8))
+    return root
+
+
+def _image_16bit(root: Path) -> Path:
+    _write_png(_png(root), np.full((*_camera_shape(root, "CAM_BACK"), 3), 40000, np.uint16))
+    return root
+
+
+def _camera_shape(root: Path, camera: str) -> tuple[int, int]:
+    """(height, width) of a camera of the rig folder."""
+    (cam,) = [c for c in json.loads((root / "rig.json").read_text())["cameras"] if c["name"] == camera]
+    return cam["height"], cam["width"]
+
+
+def _no_frames(root: Path) -> Path:
+    _edit(root, lambda d: d.update(frames=[]))
+    return root
+
+
+# what `validate` must refuse because other commands do (or the contract says so), with their one line
+FOLDER_DEFECTS = {
+    "depth_8bit": (_depth_8bit, "depth/000000/CAM_FRONT.png: not a single-channel uint16 depth PNG"),
+    "image_16bit": (_image_16bit, "frames/000000/CAM_BACK.png: not an 8-bit colour image (16 bits per channel)"),
+    "no_frames": (_no_frames, "rig.json: frames: the rig has no frames"),
+    "rig_file": (lambda root: root / "rig.json", "rig.json: expected a rig folder (the folder holding rig.json)"),
+}
+
+
+@pytest.mark.parametrize("defect", sorted(FOLDER_DEFECTS))
+def test_validate_refuses_what_the_other_commands_refuse_in_the_same_line(defect, rig_dir, tmp_path, capsys):
+    make, expected = FOLDER_DEFECTS[defect]
+    where = make(rig_dir)
+    lines = {}
+    for argv in (["validate", str(where)], ["validate", str(where), "--quick"],
+                 ["prior", str(where), "--out", str(tmp_path / "c"), "--workers", "1"],
+                 ["calibrate", str(where), "--out", str(tmp_path / "r.json")]):
+        assert main(argv) == 2, argv
+        lines[argv[0]] = _one_line(capsys).split(": ", 1)[1]  # without the "sgde <command>: " prefix
+        assert expected in lines[argv[0]], (argv, lines[argv[0]])
+    assert len(set(lines.values())) == 1, lines
+    assert not (tmp_path / "c").exists() and not (tmp_path / "r.json").exists()
+    if defect == "depth_8bit":  # eval's reader refuses it in the same words
+        from sgde_plugin.io import read_depth_png
+
+        with pytest.raises(InputError) as info:
+            read_depth_png(rig_dir / "depth" / "000000" / "CAM_FRONT.png")
+        assert info.value.line() == lines["validate"]
 
 
 def test_deeply_nested_json_is_one_line(rig_dir, capsys):

@@ -2,7 +2,8 @@
 
 A location is `PATH[::SELECTOR...]`, so a single string (a command's DIR) can name any of:
 
-- sgde-rig/1: a folder with `rig.json`, or a `rig.json` file; no selectors.
+- sgde-rig/1: a folder with `rig.json`; no selectors. The `rig.json` file alone is refused (one line:
+  the images, depths and masks live in its folder; `rig.read_rig_json` reads a file).
 - nuScenes: the data root (holding `v1.0-mini/`, `v1.0-trainval/`...) or one table folder;
   selectors: a version (`v1.0-mini`), a scene name or token (`scene-0061`), `sweeps`.
 - DDAD (DGP): a scene folder (`scene_<sha1>.json`), that file, or a root of scene folders;
@@ -21,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError
-from ..rig import Rig, read_rig_folder, read_rig_json
+from ..rig import Rig, read_rig_folder
 from . import ddad, nuscenes, omnimvs
 
 SEPARATOR = "::"
@@ -174,7 +175,7 @@ def _load_single(loc: Location, check_images: bool) -> Rig:
     if loc.layout == "sgde-rig":
         return read_rig_folder(loc.path, check_images=check_images)
     if loc.layout == "rig-json":
-        return read_rig_json(loc.path)
+        raise InputError(loc.path, None, "expected a rig folder (the folder holding rig.json), not a rig file")
     if loc.layout == "ddad":
         return ddad.load_ddad_scene(loc.path, check_images)
     return omnimvs.load_omnimvs(loc.path, check_images)
