@@ -125,6 +125,9 @@ def transform_field(entry: dict, key: str, where: str, required: bool = True,
     T = matrix_field(entry, key, (4, 4), where)
     if not np.allclose(T[3], [0, 0, 0, 1]):
         raise InputError(None, f"{where}.{key}", "last row must be [0, 0, 0, 1]")
+    det = float(np.linalg.det(T[:3, :3]))
+    if det < 0:  # rotation_error is inf for it: say what it is
+        raise InputError(None, f"{where}.{key}", f"rotation has determinant {det:.3g} (a reflection)")
     err = rotation_error(T[:3, :3])
     if err > ORTHONORMAL_TOL:
         raise InputError(None, f"{where}.{key}", f"rotation is not orthonormal (error {err:.2g} > 1e-6)")

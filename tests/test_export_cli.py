@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import pickle
 import subprocess
 import sys
 import textwrap
@@ -58,6 +59,11 @@ def test_bad_checkpoints_are_refused_with_one_line(tmp_path, capsys):
     torch.save({"state_dict": {"w": torch.zeros(1)}, "config": dict(SMALL), "hook": np.random.default_rng(0)}, evil)
     assert main([*base, str(evil)]) == 2
     assert "not a weights-only torch checkpoint" in capsys.readouterr().err
+    # a bare protocol-4 pickle naming a global: torch warns about the protocol before refusing; one line only
+    evil.write_bytes(pickle.dumps({"hook": print}, protocol=4))
+    assert main([*base, str(evil)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a weights-only torch checkpoint" in err[0], err
     # weights that do not fit the model
     wrong = tmp_path / "wrong.pt"
     torch.save({"state_dict": {"reduce_conv.0.weight": torch.zeros(3, 3)}, "config": dict(SMALL)}, wrong)
