@@ -336,18 +336,22 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
         first = next(r for r in runs if not r.verdict.accepted)
         why = f"{len(ok)} of {len(runs)} view phases accepted; the first rejected: {first.verdict.reason}"
         return replace(first, verdict=replace(first.verdict, reason=why), phases=rows)
-    names = list(ok[0].result.sensor_to_ego)
-    mean = {n: mean_transform(np.stack([r.result.sensor_to_ego[n] for r in ok])) for n in names}
+    result = _mean_result([r.result for r in ok])
+    centre = {**start, **result.sensor_to_ego}
     for row, r in zip(rows, runs):  # how far each accepted run's adjacent relative rotations are from the mean's
         if row["accepted"] and r.result is not None:
             after = {**start, **r.result.sensor_to_ego}
-            centre = {**start, **mean}
             row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(_relative_angle_deg(centre, after, a, b), 5)
                                                   for a, b in setup.pairs}
-    scales = {n: float(np.mean([r.result.focal_scale.get(n, 1.0) for r in ok]))
-              for n in {n for r in ok for n in r.result.focal_scale}}
-    result = replace(ok[0].result, sensor_to_ego=mean, focal_scale=scales)
     return replace(ok[0], result=result, phases=rows)
+
+
+def _mean_result(results: list[MethodResult]) -> MethodResult:
+    """The first result with the mean extrinsics (`mean_transform`) and mean focal scales of all of them."""
+    mean = {n: mean_transform(np.stack([r.sensor_to_ego[n] for r in results])) for n in results[0].sensor_to_ego}
+    names = {n for r in results for n in r.focal_scale}
+    scales = {n: float(np.mean([r.focal_scale.get(n, 1.0) for r in results])) for n in names}
+    return replace(results[0], sensor_to_ego=mean, focal_scale=scales)
 
 
 def _relative_angle_deg(x: Mapping[str, np.ndarray], y: Mapping[str, np.ndarray], a: str, b: str) -> float:

@@ -66,20 +66,7 @@ def run(args: argparse.Namespace) -> int:
         rig = attach_masks(rig, args.masks)
     rig_true, truth_source = _truth_rig(rig, args.dir, args.truth)
     cache = PriorCache(args.cache)
-    cache.check_frames(rig)  # the priors of another scene whose frames share ids are refused
-    cached_cams = set(cache.cameras())
-    missing = [c for c in rig.camera_names if c not in cached_cams]
-    if missing:
-        raise InputError(args.cache, "cameras", f"has no priors for {', '.join(missing)}")
-    cache.check_done_markers(f.id for f in rig.frames)  # a damaged frame is refused, not left out
-    cached = set(cache.frames())
-    frames = [f for f in rig.frames if f.id in cached]
-    if not frames:
-        raise InputError(args.cache, "frames", f"none of the {len(rig.frames)} frames of {args.dir} is in the cache")
-    if len(frames) < len(rig.frames):  # a partial build: the result covers only the built frames, and says so
-        print(f"sgde eval: {args.cache}: {len(rig.frames) - len(frames)} of the {len(rig.frames)} frames of "
-              f"{args.dir} not in the cache (not built yet): the result covers the other {len(frames)}",
-              file=sys.stderr)
+    frames = _cached_frames(cache, rig, args)
     if not any(f.depths or f.lidar is not None for f in frames):
         raise InputError(args.dir, "depth", "no ground-truth depth (depth PNGs or LiDAR) for the cached frames")
     masks = {c: rig.load_mask(c) for c in rig.camera_names}
@@ -107,6 +94,26 @@ def run(args: argparse.Namespace) -> int:
     if args.json_out:
         atomic_write_text(args.json_out, json.dumps(_plain(report), indent=1, allow_nan=False) + "\n")
     return 0
+
+
+def _cached_frames(cache, rig, args: argparse.Namespace) -> list:
+    """The rig's frames that the cache holds (InputError for another scene's cache, missing cameras, a damaged
+    frame or no frame at all); a partial build is evaluated on what it has, and one stderr line says so."""
+    cache.check_frames(rig)  # the priors of another scene whose frames share ids are refused
+    cached_cams = set(cache.cameras())
+    missing = [c for c in rig.camera_names if c not in cached_cams]
+    if missing:
+        raise InputError(args.cache, "cameras", f"has no priors for {', '.join(missing)}")
+    cache.check_done_markers(f.id for f in rig.frames)  # a damaged frame is refused, not left out
+    cached = set(cache.frames())
+    frames = [f for f in rig.frames if f.id in cached]
+    if not frames:
+        raise InputError(args.cache, "frames", f"none of the {len(rig.frames)} frames of {args.dir} is in the cache")
+    if len(frames) < len(rig.frames):
+        print(f"sgde eval: {args.cache}: {len(rig.frames) - len(frames)} of the {len(rig.frames)} frames of "
+              f"{args.dir} not in the cache (not built yet): the result covers the other {len(frames)}",
+              file=sys.stderr)
+    return frames
 
 
 def _cached_priors(cache, frame_id: str, cameras: list[str], min_confidence: float) -> tuple[dict, dict]:
