@@ -142,7 +142,8 @@ def align_patches(templates: Sequence[PatchImage], t_which: np.ndarray, t_uv: np
     I, c_ok = _sample(images, c_which, pts, ("value", "usable"))
     I, _ = _normalised(I.astype(np.float64), w)
     ncc = (I * T) @ w
-    change = np.linalg.svd(A @ np.linalg.inv(A0), compute_uv=False)
+    # a warp that collapsed (a singular value 0) is as far from the template's as can be: log -> inf, rejected below
+    change = np.maximum(np.linalg.svd(A @ np.linalg.inv(A0), compute_uv=False), np.finfo(float).tiny)
     checks = {"flat": ~flat, "converged": done, "shift": np.linalg.norm(centre - c_uv, axis=1) <= cfg.max_shift_px,
               "ncc": ncc >= cfg.min_ncc, "usable": (t_ok.min(1) > 0) & (c_ok.min(1) > 0),
               "affine": np.abs(np.log(change)).max(1) <= np.log1p(cfg.max_affine_change)}
