@@ -187,37 +187,37 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of a PNG or JPEG from its header, without decoding the pixels."""
+    return image_header(path)[:2]
+
+
+def image_header(path: str | Path) -> tuple[int, int, int, int | None]:
+    """(width, height, bits per channel, PNG colour type; None for a JPEG, taken as 8-bit) of a PNG or JPEG from
+    its header, without decoding the pixels."""
     path = Path(path)
     try:
-        return _header_size(path)
+        return _header(path)
     except OSError as exc:  # a folder where an image belongs, no permission, ...
         raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
     except struct.error:  # cut short inside the header
         raise InputError(path, None, "not a readable PNG or JPEG image (header cut short)") from None
 
 
-def check_pixel_format(path: str | Path, depth: bool = False) -> None:
-    """InputError unless the file's header holds what a rig folder asks for (sgde-rig/1): a colour image
-    of 8 bits per channel, or with `depth` a single-channel 16-bit PNG. Reads the header only."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(26)
-    except OSError as exc:
-        raise InputError(path, None, f"cannot read ({exc.strerror or exc})") from None
-    png = len(head) == 26 and head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR"
-    bits, colour_type = (head[24], head[25]) if png else (8, None)  # JPEG: 8-bit baseline
+def check_pixel_format(path: str | Path, header: tuple[int, int, int, int | None], depth: bool = False) -> None:
+    """InputError unless an `image_header` holds what a rig folder asks for (sgde-rig/1): a colour image of 8
+    bits per channel, or with `depth` a single-channel 16-bit PNG."""
+    _, _, bits, colour_type = header
     if depth and (bits, colour_type) != (16, 0):
         raise InputError(path, None, DEPTH_PNG_PROBLEM)
     if not depth and bits > 8:
         raise InputError(path, None, f"not an 8-bit colour image ({bits} bits per channel)")
 
 
-def _header_size(path: Path) -> tuple[int, int]:
+def _header(path: Path) -> tuple[int, int, int, int | None]:
     with open(path, "rb") as f:
         head = f.read(32)
         if head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
-            w, h = struct.unpack(">II", head[16:24])
-            return int(w), int(h)
+            w, h, bits, colour_type = struct.unpack(">IIBB", head[16:26])
+            return int(w), int(h), int(bits), int(colour_type)
         if head[:2] == b"\xff\xd8":
             f.seek(2)
             while True:
@@ -229,6 +229,6 @@ def _header_size(path: Path) -> tuple[int, int]:
                 (length,) = struct.unpack(">H", f.read(2))
                 if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):
                     _, h, w = struct.unpack(">BHH", f.read(5))
-                    return int(w), int(h)
+                    return int(w), int(h), 8, None
                 f.seek(length - 2, os.SEEK_CUR)
     raise InputError(path, None, "not a readable PNG or JPEG image")

@@ -16,7 +16,7 @@ from .geometry import invert_transform
 from .io import (
     atomic_write_text,
     check_pixel_format,
-    image_size,
+    image_header,
     is_plain_name,
     read_depth_png,
     read_image,
@@ -442,19 +442,22 @@ def check_folder_files(rig: Rig) -> None:
             path = fr.images.get(cam.name)
             if path is None:
                 raise InputError(rig.root / "frames" / fr.id, cam.name, "image missing")
-            _check_size(path, cam)
-            check_pixel_format(path)
+            _check_file(path, cam, depth=False)
             if cam.name in fr.depths:
-                _check_size(fr.depths[cam.name], cam)
-                check_pixel_format(fr.depths[cam.name], depth=True)
+                _check_file(fr.depths[cam.name], cam, depth=True)
     for name, path in rig.masks.items():
-        _check_size(path, rig.camera(name))
+        _check_file(path, rig.camera(name))
 
 
-def _check_size(path: Path, cam: Camera) -> None:
-    w, h = image_size(path)
+def _check_file(path: Path, cam: Camera, depth: bool | None = None) -> None:
+    """The file's size is the camera's; with `depth` False / True its pixels are an image's / a depth PNG's (one
+    header read)."""
+    header = image_header(path)
+    w, h = header[:2]
     if (w, h) != (cam.width, cam.height):
         raise InputError(path, "size", f"image is {w}x{h}, camera {cam.name} is {cam.width}x{cam.height}")
+    if depth is not None:
+        check_pixel_format(path, header, depth)
 
 
 def write_rig_json(rig: Rig, path: str | Path) -> None:

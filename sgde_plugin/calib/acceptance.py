@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry import invert_transform, rotation_angle_deg
 from ..rig import Rig
 
 # beta per observation pair. The paper's values (LoFTR correspondences at full resolution):
@@ -152,12 +153,20 @@ def check_correspondences(counts: Mapping[tuple[str, str], int], rules: Acceptan
 def translation_changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
                         pairs: Sequence[tuple[str, str]]) -> dict[tuple[str, str], float]:
     """Per adjacent pair: how far (m) the position of b in a's frame moved."""
-    out = {}
+    return {(a, b): float(np.linalg.norm(r1[:3, 3] - r0[:3, 3])) for (a, b), r0, r1 in _relatives(before, after, pairs)}
+
+
+def rotation_changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray],
+                     pairs: Sequence[tuple[str, str]]) -> dict[tuple[str, str], float]:
+    """Per adjacent pair: how far (deg) the orientation of b in a's frame turned."""
+    return {(a, b): float(rotation_angle_deg(r0[:3, :3].T @ r1[:3, :3])) for (a, b), r0, r1 in
+            _relatives(before, after, pairs)}
+
+
+def _relatives(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], pairs: Sequence[tuple[str, str]]):
+    """Per pair (a, b): b's pose in a's frame under `before` and under `after`."""
     for a, b in pairs:
-        rel0 = np.linalg.inv(before[a]) @ before[b]
-        rel1 = np.linalg.inv(after[a]) @ after[b]
-        out[(a, b)] = float(np.linalg.norm(rel1[:3, 3] - rel0[:3, 3]))
-    return out
+        yield (a, b), invert_transform(before[a]) @ before[b], invert_transform(after[a]) @ after[b]
 
 
 def check_result(

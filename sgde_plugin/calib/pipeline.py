@@ -26,7 +26,7 @@ import numpy as np
 
 from ..cameras import Camera, CameraModel
 from ..errors import InputError
-from ..geometry import ORTHONORMAL_TOL, invert_transform, mean_transform, rotation_angle_deg, rotation_error
+from ..geometry import ORTHONORMAL_TOL, mean_transform, rotation_error
 from ..rig import Frame, Rig
 from ..rigfile import intrinsics_from_dict
 from ..stereo.rectify import torch_threads
@@ -38,6 +38,7 @@ from .acceptance import (
     check_correspondences,
     check_result,
     default_beta,
+    rotation_changes,
     translation_changes,
 )
 from .ba import AdjustConfig
@@ -150,16 +151,6 @@ def _links_kept(matches: list[PairMatches]) -> str:
     alone: those that extend a pair's tracks) or "none"."""
     links = [link for pm in matches for link in pm.links]
     return "all" if any(link.standalone for link in links) else "touching" if links else "none"
-
-
-def _changes(before: Mapping[str, np.ndarray], after: Mapping[str, np.ndarray], pairs) -> tuple[float, float]:
-    rot, trans = 0.0, 0.0
-    for a, b in pairs:
-        r0 = invert_transform(before[a]) @ before[b]
-        r1 = invert_transform(after[a]) @ after[b]
-        rot = max(rot, _relative_angle_deg(before, after, a, b))
-        trans = max(trans, float(np.linalg.norm(r1[:3, 3] - r0[:3, 3])))
-    return rot, trans
 
 
 def calibrate(
@@ -341,8 +332,8 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
     for row, r in zip(rows, runs):  # how far each accepted run's adjacent relative rotations are from the mean's
         if row["accepted"] and r.result is not None:
             after = {**start, **r.result.sensor_to_ego}
-            row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(_relative_angle_deg(centre, after, a, b), 5)
-                                                  for a, b in setup.pairs}
+            turned = rotation_changes(centre, after, setup.pairs)
+            row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(v, 5) for (a, b), v in turned.items()}
     return replace(ok[0], result=result, phases=rows)
 
 
@@ -352,13 +343,6 @@ def _mean_result(results: list[MethodResult]) -> MethodResult:
     names = {n for r in results for n in r.focal_scale}
     scales = {n: float(np.mean([r.focal_scale.get(n, 1.0) for r in results])) for n in names}
     return replace(results[0], sensor_to_ego=mean, focal_scale=scales)
-
-
-def _relative_angle_deg(x: Mapping[str, np.ndarray], y: Mapping[str, np.ndarray], a: str, b: str) -> float:
-    """Angle (deg) between camera pair (a, b)'s relative rotations under extrinsics x and y."""
-    rx = invert_transform(x[a]) @ x[b]
-    ry = invert_transform(y[a]) @ y[b]
-    return float(rotation_angle_deg(rx[:3, :3].T @ ry[:3, :3]))
 
 
 def _weak_unseen_pairs(setup: Setup, judged: Judged, n_frames: int) -> list[str]:
@@ -423,7 +407,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
     intr = dict(start_intr)
     if j.verdict.accepted:
         intr.update({n: start_intr[n].with_focal_scale(s) for n, s in res.focal_scale.items()})
-    rot, trans = _changes(start, after, setup.pairs)
+    moved = translation_changes(start, after, setup.pairs)
     report = {
         "index": k, "frames": [f.id for f in win], "timestamp_us": int(win[0].timestamp_us),
         "accepted": j.verdict.accepted,
@@ -433,15 +417,15 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "same_camera_links": _links_kept(j.matches),
         "links_because": j.links_for,
         "view_phases": j.phases,
-        "pairs": _pair_rows(j.matches, j.used, j.result, translation_changes(start, after, setup.pairs),
+        "pairs": _pair_rows(j.matches, j.used, j.result, moved,
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),
         "converged": bool(res.converged),
         "message": res.message,
         "rms_px_before": _num(res.rms_before_px),
         "rms_px_after": _num(res.rms_after_px),
-        "max_rotation_change_deg": rot,
-        "max_translation_change_m": trans,
+        "max_rotation_change_deg": max(rotation_changes(start, after, setup.pairs).values(), default=0.0),
+        "max_translation_change_m": max(moved.values(), default=0.0),
         "focal": _focal_rows(start_intr, j.result),
         "seconds": {s: round(setup.timings.seconds.get(s, 0.0) - before.get(s, 0.0), 3)
                     for s in setup.timings.seconds},
