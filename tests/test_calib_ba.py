@@ -14,7 +14,7 @@ from sgde_plugin.calib.ba import (
 )
 from sgde_plugin.calib.correspondences import PairMatches
 from sgde_plugin.calib.methods import observations
-from sgde_plugin.calib.schur import _point_terms, per_point_sum, reduced_system
+from sgde_plugin.calib.schur import inverse_cholesky, point_blocks, point_sums, point_terms, reduced_system
 from sgde_plugin.calib.simulate import perturb_extrinsics, simulate_observations, straight_drive
 from sgde_plugin.cameras import Camera, Pinhole
 from sgde_plugin.geometry import (
@@ -151,13 +151,17 @@ def test_reduced_system_is_the_schur_complement_of_the_full_normal_equations(sce
     scale = np.abs(S_ref[np.ix_(keep, keep)]).max()
     assert np.allclose(S[np.ix_(keep, keep)], S_ref[np.ix_(keep, keep)], atol=1e-9 * scale)
     assert np.allclose(rhs[keep], rhs_ref[keep], atol=1e-9 * np.abs(rhs_ref[keep]).max())
-    # the points are summed in chunks (memory); chunk boundaries do not change the sum
-    Hpl_o = np.swapaxes(Jp * w[:, None, None], 1, 2) @ Jl
-    Hinv_o = np.linalg.inv(Hll_d.reshape(K, 3, K, 3)[np.arange(K), :, np.arange(K), :])[obs.point]
-    whole = _point_terms(prob.pose_idx, obs.point, Hpl_o, Hpl_o @ Hinv_o, n, K)
-    assert np.allclose(_point_terms(prob.pose_idx, obs.point, Hpl_o, Hpl_o @ Hinv_o, n, K, chunk=7), whole,
-                       atol=1e-12 * np.abs(whole).max())
-    assert np.allclose(Hpp_d - whole, S, atol=1e-9 * scale)
+    # the points are summed in chunks (memory); chunk boundaries do not change the sums
+    Hlp_o = np.moveaxis(np.swapaxes(Jl * w[:, None, None], 1, 2) @ Jp, 0, 2)  # (3, c, N)
+    L_inv = inverse_cholesky(Hll_d.reshape(K, 3, K, 3)[np.arange(K), :, np.arange(K), :])
+    z = (L_inv @ gl.reshape(K, 3, 1))[:, :, 0]
+    whole = point_terms(point_blocks(prob.pose_idx, obs.point, n, K), Hlp_o, L_inv, z, n)
+    chunked = point_terms(point_blocks(prob.pose_idx, obs.point, n, K, chunk=7), Hlp_o, L_inv, z, n)
+    assert len(point_blocks(prob.pose_idx, obs.point, n, K, chunk=7)) == -(-K // 7) > 1
+    for a, b in zip(chunked, whole):
+        assert np.allclose(a, b, atol=1e-12 * np.abs(b).max())
+    assert np.allclose(Hpp_d - whole[0], S, atol=1e-9 * scale)
+    assert np.allclose(whole[1][keep] - gp[keep], rhs_ref[keep], atol=1e-9 * np.abs(rhs_ref[keep]).max())
 
 
 def test_noise_free_recovery(scene):
@@ -314,4 +318,19 @@ def test_per_point_sums_equal_add_at_bit_for_bit():
         values = rng.normal(size=(5000, *shape))
         expected = np.zeros((301, *shape))
         np.add.at(expected, point, values)
-        np.testing.assert_array_equal(per_point_sum(point, values, 301), expected)
+        np.testing.assert_array_equal(point_sums(point, np.moveaxis(values, 0, -1), 301), expected)
+
+
+def test_inverse_cholesky_of_3x3_blocks():
+    """L^-1 of H = L L^T, lower triangular, matches LAPACK's factor; (L^-1)^T L^-1 is H^-1, also for a block whose
+    smallest eigenvalue is 1e-9 of its largest (a far point seen along nearly one ray)."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(50, 3, 3))
+    H = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    H[0] = Q @ np.diag([1e6, 1.0, 1e-3]) @ Q.T
+    L_inv = inverse_cholesky(H)
+    assert np.all(np.triu(L_inv, 1) == 0.0)
+    np.testing.assert_allclose(L_inv, np.linalg.inv(np.linalg.cholesky(H)), rtol=1e-9, atol=1e-12)
+    inv = np.swapaxes(L_inv, 1, 2) @ L_inv
+    np.testing.assert_allclose(inv @ H, np.broadcast_to(np.eye(3), H.shape), atol=1e-8)

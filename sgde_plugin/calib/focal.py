@@ -32,11 +32,14 @@ class FocalMap:
     theta: np.ndarray | None = None
     rho: np.ndarray | None = None
 
-    def apply(self, q: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Directions q (N, 3) -> mapped directions v (N, 3), dv/dq (N, 3, 3) and dv/ds (N, 3)."""
+    def apply(self, q: np.ndarray, s: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Directions q (N, 3) -> mapped directions v (N, 3), dv/dq (N, 3, 3) and dv/ds (N, 3); the scale `s` is
+        one number or one per direction (N,)."""
         if self.theta is None:
-            d = np.array([s, s, 1.0])
-            J = np.broadcast_to(np.diag(d), (q.shape[0], 3, 3))
+            d = np.ones((q.shape[0], 3))
+            d[:, :2] = np.reshape(s, (-1, 1))
+            J = np.zeros((q.shape[0], 3, 3))
+            J[:, [0, 1, 2], [0, 1, 2]] = d
             return q * d, J, np.concatenate([q[:, :2], np.zeros((q.shape[0], 1))], axis=1)
         return _radial_apply(self.theta, self.rho, q, s)
 
