@@ -303,6 +303,16 @@ def _cross_rows(A: np.ndarray, w: np.ndarray) -> np.ndarray:
                      A[:, 0] * w[1] - A[:, 1] * w[0]], axis=1)
 
 
+def _focal_groups(maps: Sequence[FocalMap | None], camera: np.ndarray) -> list[tuple[FocalMap, np.ndarray]]:
+    """The observations (indices) per focal map: one group for the plain pinholes' maps (all alike), one per
+    other camera with a map; cameras without a map or observations have none."""
+    plain = [m for m, fm in enumerate(maps) if fm is not None and fm.theta is None]
+    groups = [(FocalMap(), plain)] if plain else []
+    groups += [(fm, [m]) for m, fm in enumerate(maps) if fm is not None and fm.theta is not None]
+    members = [(fm, np.flatnonzero(np.isin(camera, ms))) for fm, ms in groups]
+    return [(fm, idx) for fm, idx in members if idx.size]
+
+
 class _Problem:
     """Residuals, Jacobians and priors of one loop-constrained adjustment.
 
@@ -362,11 +372,7 @@ class _Problem:
             self.n_full = n = n + self.M
             self.solve_idx = np.concatenate([self.solve_idx, self.f_idx + np.arange(self.M)])
             self.pose_idx = np.concatenate([self.pose_idx, (self.f_idx + obs.camera)[:, None]], axis=1)  # (N, 13)
-            # one group for the plain pinholes' maps (all alike), one per other camera with a map
-            plain = [m for m, fm in enumerate(self.maps) if fm is not None and fm.theta is None]
-            groups = [(FocalMap(), plain)] if plain else []
-            groups += [(fm, [m]) for m, fm in enumerate(self.maps) if fm is not None and fm.theta is not None]
-            self.focal_groups = [(fm, idx) for fm, ms in groups if (idx := np.flatnonzero(np.isin(obs.camera, ms))).size]
+            self.focal_groups = _focal_groups(self.maps, obs.camera)
         self.views = view_layout(self.view, self.pose_idx)
         self.point_blocks = point_blocks(self.pose_idx, obs.point, n, int(obs.point.max()) + 1 if len(obs) else 0)
 

@@ -94,7 +94,8 @@ def view_layout(view: np.ndarray, pose_idx: np.ndarray) -> ViewLayout:
     return ViewLayout(order, cuts, pose_idx[order[cuts[:-1]]])
 
 
-def pose_terms(views: ViewLayout, Jp: np.ndarray, r: np.ndarray, w: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def pose_terms(views: ViewLayout, Jp: np.ndarray, r: np.ndarray, w: np.ndarray,
+               n: int) -> tuple[np.ndarray, np.ndarray]:
     """The observations' pose block of the normal equations (n, n) and gradient (n,) from the pose Jacobians
     Jp (2, c, N), residuals r (2, N) and weights w (N,): one product per group of observations that share their
     pose unknowns (a sum over observations would scatter c^2 numbers each)."""
