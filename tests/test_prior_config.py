@@ -160,6 +160,9 @@ OUT_OF_RANGE = [
     (["--lr-max-diff", "0"], "lr_max_diff: must be positive"),
     (["--min-zncc", "1"], "min_zncc: must be below 1"),
     (["--max-abs-diff", "0"], "max_abs_diff: must be positive"),
+    # the cache stores float16 depths: beyond 65504 m (or under 6.2e-5 m) a depth would be served clipped
+    (["--max-depth", "1e9"], "max_depth: must be at most 65504 m"),
+    (["--min-depth", "1e-6"], "min_depth: must be at least 6.2e-05 m (the cache stores float16 depths)"),
 ]
 
 
@@ -188,7 +191,8 @@ def test_a_corrected_rerun_after_a_bad_setting_builds_into_the_same_out(small_ri
 def test_range_limits_keep_the_defaults_and_the_usable_edge_values():
     edges = {"p1": 0, "p2": 1, "uniqueness": 0, "speckle_window": 0, "speckle_range": 0, "max_azimuth_deg": 89.9,
              "max_elevation_deg": 0.5, "margin_px": 1024, "border_px": 0, "normalize_sigma": 0.1,
-             "lr_max_diff": 0.01, "confidence_disparity_px": 0.01, "min_zncc": -1.0, "max_abs_diff": 0.5}
+             "lr_max_diff": 0.01, "confidence_disparity_px": 0.01, "min_zncc": -1.0, "max_abs_diff": 0.5,
+             "min_depth": 6.2e-5, "max_depth": 65504.0}
     config = PriorConfig.from_settings(edges)
     assert all(config.get(name) == value for name, value in edges.items())
     for preset in PRESETS:

@@ -12,11 +12,9 @@ import zarr
 from zarr.core.sync import sync
 
 from ..errors import InputError
+from ..stereo.config import FLOAT16_MAX, FLOAT16_MIN_POSITIVE
 from .backends import Location, get_bytes, location_name, open_store
 from .layout import CameraEntry, shard_key
-
-FLOAT16_MAX = 65504.0
-FLOAT16_MIN_POSITIVE = 6.2e-5  # smallest normal float16, so a valid depth never rounds to 0
 
 
 def encode_prior(

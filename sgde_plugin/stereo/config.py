@@ -154,6 +154,9 @@ _FLAT_NAMES = {("matcher", "name"): "matcher", ("matcher", "device"): "device",
 # margins, borders and smoothing windows, rectified px: more only blanks or bloats a canvas (an absurd
 # value made OpenCV / torch allocate tens of GB); real settings are a few to a few tens of pixels
 MAX_PAD_PX = 1024
+# the cache stores depths as float16: what it can hold without clipping (a depth outside would be served clipped)
+FLOAT16_MAX = 65504.0
+FLOAT16_MIN_POSITIVE = 6.2e-5  # smallest normal float16, so a valid depth never rounds to 0
 # flat setting -> (the values the code can use, the problem otherwise): checked before any work starts
 RANGES: dict[str, tuple[Callable[[float], bool], str]] = {
     # SGBM (OpenCV): penalties and counts are non-negative; uniqueness is a percentage
@@ -173,6 +176,9 @@ RANGES: dict[str, tuple[Callable[[float], bool], str]] = {
     "confidence_disparity_px": (lambda v: v > 0, "must be positive (pixels)"),
     "min_zncc": (lambda v: v < 1, "must be below 1"),
     "max_abs_diff": (lambda v: v > 0, "must be positive (grey levels)"),
+    "min_depth": (lambda v: v >= FLOAT16_MIN_POSITIVE,
+                  f"must be at least {FLOAT16_MIN_POSITIVE:g} m (the cache stores float16 depths)"),
+    "max_depth": (lambda v: v <= FLOAT16_MAX, f"must be at most {FLOAT16_MAX:g} m (the cache stores float16 depths)"),
 }
 
 
