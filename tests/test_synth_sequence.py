@@ -6,6 +6,7 @@ Runtime: about 30 s on 2 cores (cross-view checks at reduced scale dominate).
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -140,3 +141,20 @@ def test_depth_written_matches_memory(tmp_path):
         assert np.abs(d - ref).max() <= 0.5 / 256 + 1e-6
         np.testing.assert_array_equal(rig.load_image("000000", cam), seq.images["000000"][cam])
     assert math.isclose(rig.camera("F").intrinsics.fov_deg, 220.0)
+
+
+def test_a_killed_writers_temporary_folder_is_removed_by_the_next_run(tmp_path):
+    """kill -9 leaves write_synth's temporary sibling behind; the next run removes it when its process is gone and
+    leaves a live writer's alone."""
+    import subprocess
+    import sys
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = tmp_path / f".out.{int(gone.stdout)}.x1.tmp"
+    live = tmp_path / f".out.{os.getpid()}.x2.tmp"
+    other = tmp_path / f".other.{int(gone.stdout)}.x3.tmp"
+    for d in (dead, live, other):
+        (d / "frames").mkdir(parents=True)
+    write_synth("nuscenes", 1, tmp_path / "out", scale=0.06)
+    assert not dead.exists() and live.exists() and other.exists()
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == ["out"]

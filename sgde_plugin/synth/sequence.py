@@ -13,6 +13,7 @@ files carry them as per-camera captures (`frames[].cameras`).
 
 from __future__ import annotations
 
+import glob
 import math
 import os
 import shutil
@@ -169,6 +170,27 @@ def synth_sequence(preset: str, frames: int, seed: int = 0, scale: float = 1.0, 
     return seq
 
 
+def _remove_dead_temporaries(out: Path) -> None:
+    """Remove the temporary siblings `write_synth` left for `out` when it was killed (kill -9, power loss): those
+    whose process (the number in the name) no longer runs. A live writer's folder is left alone."""
+    prefix = f".{out.name}."
+    for tmp in out.parent.glob(f"{glob.escape(prefix)}*.tmp"):
+        pid = tmp.name[len(prefix):].split(".", 1)[0]
+        if tmp.is_dir() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this number runs (or runs under another user)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, scale: float = 1.0,
                 pose_noise_deg: float = 1.0, pose_noise_m: float = 0.05, supersample: int = 1,
                 show_progress: bool | None = None, workers: int | None = None, capture: str = "sync",
@@ -185,7 +207,8 @@ def write_synth(preset: str, frames: int, out_dir: str | Path, seed: int = 0, sc
     out.parent.mkdir(parents=True, exist_ok=True)
     world = preset_world(preset, seed, ego_body)
     rig_true, rig = _rigs(preset, frames, seed, scale, pose_noise_deg, pose_noise_m, world, capture, sweep_ms)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    _remove_dead_temporaries(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{os.getpid()}.", suffix=".tmp", dir=out.parent))
     try:
         def save(fid: str, cam: str, rgb: np.ndarray, depth: np.ndarray) -> None:
             write_image(tmp / "frames" / fid / f"{cam}.png", rgb)
