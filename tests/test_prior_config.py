@@ -148,6 +148,8 @@ OUT_OF_RANGE = [
     (["--max-azimuth-deg", "500"], "max_azimuth_deg: must be in (0, 90) degrees"),
     (["--max-azimuth-deg", "-10"], "max_azimuth_deg: must be in (0, 90) degrees"),
     (["--max-elevation-deg", "95"], "max_elevation_deg: must be in (0, 90) degrees"),
+    (["--max-azimuth-deg", "1", "--max-elevation-deg", "89"],
+     "max_elevation_deg: tan(max_elevation_deg) / tan(max_azimuth_deg) must be at most 16, got 3.28e+03"),
     (["--normalize", "local", "--normalize-sigma", "0"], "normalize_sigma: must be in (0, 1024] pixels"),
     (["--margin-px", "100000"], "margin_px: must be in [0, 1024] pixels"),
     (["--border-px", "100000"], "border_px: must be in [0, 1024] pixels"),

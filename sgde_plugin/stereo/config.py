@@ -10,6 +10,7 @@ groups the settings. `PriorConfig.from_settings` takes flat names and/or group m
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -154,6 +155,9 @@ _FLAT_NAMES = {("matcher", "name"): "matcher", ("matcher", "device"): "device",
 # margins, borders and smoothing windows, rectified px: more only blanks or bloats a canvas (an absurd
 # value made OpenCV / torch allocate tens of GB); real settings are a few to a few tens of pixels
 MAX_PAD_PX = 1024
+# tan(elevation) / tan(azimuth) of the rectified canvas: its shared sector is found on a grid of 241 columns and
+# this many times as many rows (1 deg x 89 deg asked for 190 million directions, several GB)
+MAX_CANVAS_ASPECT = 16
 # the cache stores depths as float16: what it can hold without clipping (a depth outside would be served clipped)
 FLOAT16_MAX = 65504.0
 FLOAT16_MIN_POSITIVE = 6.2e-5  # smallest normal float16, so a valid depth never rounds to 0
@@ -320,6 +324,11 @@ class PriorConfig:
             value = self.get(name)
             if not ok(value):
                 raise InputError(None, name, f"{problem}, got {value!r}")
+        el, az = (math.radians(self.get(k)) for k in ("max_elevation_deg", "max_azimuth_deg"))
+        aspect = math.tan(el) / math.tan(az)
+        if aspect > MAX_CANVAS_ASPECT:  # the canvas's sector is sampled on a grid of this aspect
+            raise InputError(None, "max_elevation_deg", f"tan(max_elevation_deg) / tan(max_azimuth_deg) must be at "
+                             f"most {MAX_CANVAS_ASPECT}, got {aspect:.3g}")
         if not self.sgbm.p2 > self.sgbm.p1:
             raise InputError(None, "p2", f"must be greater than p1 (OpenCV SGBM needs P2 > P1), got p1 = "
                              f"{self.sgbm.p1!r}, p2 = {self.sgbm.p2!r}")
