@@ -2,7 +2,8 @@
 (Levenberg-Marquardt) steps on the normal equations with the points eliminated per point (Schur complement,
 the standard bundle-adjustment reduction), a safeguarded Gauss-Newton step per point with the poses held,
 and the covariance of the pose (and focal-scale) unknowns. Each function takes the problem (`ba._Problem`:
-residuals, Jacobians, priors, unknown layout) and a state.
+residuals, Jacobians, priors, unknown layout) and a state. Per-observation arrays have the observations on their
+last axis (`_Problem.terms`); per-point ones on their first.
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ def pose_terms(views: ViewLayout, Jp: np.ndarray, r: np.ndarray, w: np.ndarray,
 @dataclass(frozen=True)
 class PointBlock:
     """One chunk of points of the Schur complement: its observations (point by point), first point, count, and
-    where each of their Hlp entries lands in the chunk's dense (points * 3, n) matrix."""
+    where each entry of their (3, c) per-observation products lands in the chunk's dense (points * 3, n) matrix."""
 
     obs: np.ndarray
     points: np.ndarray  # the point of each of `obs`
@@ -130,7 +131,7 @@ def point_blocks(pose_idx: np.ndarray, point: np.ndarray, n: int, K: int, chunk:
         sel = np.flatnonzero((point >= k0) & (point < k0 + chunk))
         sel = sel[np.argsort(point[sel], kind="stable")]  # in memory order: the scatter below stays in cache
         rows = 3 * (point[sel] - k0)[:, None, None] + np.arange(3)[None, :, None]  # (N, 3, 1)
-        flat = (rows * n + pose_idx[sel, None, :]).ravel()  # Hlp's (N, 3, c) order
+        flat = (rows * n + pose_idx[sel, None, :]).ravel()  # in (N, 3, c) order
         out.append(PointBlock(sel, point[sel], k0, min(chunk, K - k0), flat))
     return out
 
