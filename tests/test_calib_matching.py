@@ -83,6 +83,16 @@ def test_sift_matches_follow_the_true_geometry(box):
     assert len(ia) > 30 and np.median(err_px) < 0.5
 
 
+def test_more_octave_layers_sample_more_scales(box):
+    """`octave_layers` is OpenCV's nOctaveLayers: five scales per octave find more keypoints than Lowe's three on
+    the same image, and the default is three."""
+    image = box[2]["000000"]["C0"]
+    three, five = sift_features(image), sift_features(image, octave_layers=5)
+    assert MatchConfig().octave_layers == 3
+    assert len(sift_features(image, octave_layers=3)) == len(three)
+    assert len(five) > 1.2 * len(three) > 100
+
+
 def test_find_correspondences_all_frame_pairs(box):
     """Every T x T observation pair is matched and verified; the answer does not depend on how many threads
     match them (the random subsets of `max_per_view_pair` are drawn in a fixed order)."""

@@ -198,3 +198,5 @@ def test_view_phases_average_the_runs_with_moved_view_grids(box):
     assert errors(out, rig_true)[0].max() < 0.15
     with pytest.raises(InputError, match="view_phases"):
         calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phases=5))
+    with pytest.raises(InputError, match="octave_layers: must be 1 to 8, got 0"):
+        calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, octave_layers=0))

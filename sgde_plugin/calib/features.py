@@ -100,9 +100,10 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 def sift_features(
     image: np.ndarray, mask: np.ndarray | None = None, max_features: int = 4000, scale: float = 1.0,
-    contrast_threshold: float = 0.04,
+    contrast_threshold: float = 0.04, octave_layers: int = 3,
 ) -> Keypoints:
-    """SIFT keypoints of an image (optionally downscaled by `scale` for speed), positions in native pixels."""
+    """SIFT keypoints of an image (optionally downscaled by `scale` for speed), positions in native pixels;
+    `octave_layers`: scales sampled per octave (OpenCV's nOctaveLayers, Lowe's 3)."""
     gray = to_gray(image)
     if scale != 1.0:
         h, w = gray.shape
@@ -110,7 +111,7 @@ def sift_features(
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
         if mask is not None:
             mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast_threshold)
+    sift = cv2.SIFT_create(nfeatures=max_features, nOctaveLayers=octave_layers, contrastThreshold=contrast_threshold)
     kps, desc = sift.detectAndCompute(gray, mask)
     if desc is None or not kps:
         return Keypoints(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0))

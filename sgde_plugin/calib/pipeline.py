@@ -197,6 +197,14 @@ class Setup:
     pairs: list[tuple[str, str]]
 
 
+def _check_match_config(cfg: MatchConfig) -> None:
+    """InputError for matching settings outside what the pipeline runs."""
+    if not 1 <= cfg.view_phases <= len(VIEW_PHASES):
+        raise InputError(None, "view_phases", f"must be 1 to {len(VIEW_PHASES)}, got {cfg.view_phases}")
+    if not 1 <= cfg.octave_layers <= 8:
+        raise InputError(None, "octave_layers", f"must be 1 to 8, got {cfg.octave_layers}")
+
+
 def _setup(
     rig: Rig,
     images: Callable[[str, str], np.ndarray] | None = None,
@@ -221,8 +229,8 @@ def _setup(
         raise InputError(None, "matcher", f"unknown matcher {matcher!r} (expected one of {', '.join(MATCHERS)})")
     if window < 1:
         raise InputError(None, "window", "must be at least 1 frame")
-    if match_config is not None and not 1 <= match_config.view_phases <= len(VIEW_PHASES):
-        raise InputError(None, "view_phases", f"must be 1 to {len(VIEW_PHASES)}, got {match_config.view_phases}")
+    if match_config is not None:
+        _check_match_config(match_config)
     check_extrinsics(rig)
     selected = rig.frames if frames is None else rig.frames[frames]
     if not selected:
