@@ -39,7 +39,8 @@ class MatchConfig:
     loftr_weights: str | None = None
     max_features: int = 4000
     contrast_threshold: float = 0.02
-    # SIFT's scales per octave (Lowe's 3); 5 lowered the worst pair on the development seeds (session 17), opt-in
+    # SIFT's scales per octave (Lowe's 3); 5 lowered the worst pair on the development seeds but not on the
+    # report seeds (session 17, docs/results/issue-17-calibration.md): opt-in
     octave_layers: int = 3
     feature_scale: float = 1.0
     ratio: float = 0.8
