@@ -64,13 +64,14 @@ def _seen_only_across_time(box):
 @pytest.fixture(scope="module")
 def across_time(box):
     """`calibrate` on the box world seen only across time by C2-C3: (extrinsics, window report) with and
-    without `auto_links`."""
+    without `auto_links` (one view phase: the links are what is tested)."""
     seen = _seen_only_across_time(box)
     runs, detections = {}, {}
     for auto in (True, False):
         with mock.patch.object(correspondences, "detect_features", wraps=correspondences.detect_features) as spy:
             runs[auto] = calibrate(box[1], lambda f, c: seen[f][c], show_progress=False,
-                                   match_config=MatchConfig(view_interpolation="linear", auto_links=auto))
+                                   match_config=MatchConfig(view_interpolation="linear", auto_links=auto,
+                                                            auto_phases=False))
         detections[auto] = spy.call_count
     return {**runs, "detections": detections}
 

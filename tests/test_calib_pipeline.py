@@ -172,7 +172,19 @@ def test_bad_initial_extrinsics_are_input_errors(box):
         calibrate(rig, lambda f, c: images[f][c], method="bundle")
 
 
-def test_view_phases_average_the_runs_with_moved_view_grids(box):
+@pytest.fixture(scope="module")
+def phase_singles(box):
+    """The first window of the box rig calibrated once at each of the view phases (rig, report)."""
+    from sgde_plugin.calib import MatchConfig
+    from sgde_plugin.calib.correspondences import VIEW_PHASES
+
+    _, rig, images = box
+    load = lambda f, c: images[f][c]  # noqa: E731
+    return [calibrate(rig, load, frames=slice(0, 2), match_config=MatchConfig(view_phase=p, auto_phases=False))
+            for p in VIEW_PHASES]
+
+
+def test_view_phases_average_the_runs_with_moved_view_grids(box, phase_singles):
     """`MatchConfig.view_phases=2`: the window is matched and adjusted with the views at phase (0, 0) and (0.5, 0.5)
     and the result is the mean of the two runs' extrinsics (each run equals a single run at that phase); the
     report says how far each run's relative rotations are from the mean."""
@@ -184,8 +196,7 @@ def test_view_phases_average_the_runs_with_moved_view_grids(box):
     rig_true, rig, images = box
     load = lambda f, c: images[f][c]  # noqa: E731
     one = MatchConfig()
-    runs = [calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phase=p))[0]
-            for p in ((0.0, 0.0), (0.5, 0.5))]
+    runs = [r for r, _ in phase_singles[:2]]
     out, block = calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phases=2))
     w = block["windows"][0]
     assert w["accepted"] and [p["phase"] for p in w["view_phases"]] == [[0.0, 0.0], [0.5, 0.5]]
@@ -200,3 +211,46 @@ def test_view_phases_average_the_runs_with_moved_view_grids(box):
         calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, view_phases=5))
     with pytest.raises(InputError, match="octave_layers: must be 1 to 8, got 0"):
         calibrate(rig, load, frames=slice(0, 2), match_config=replace(one, octave_layers=0))
+
+
+def test_auto_phases_redo_a_window_with_a_weak_pair_at_every_view_phase(box, phase_singles):
+    """`MatchConfig.auto_phases`: a window whose adjacent pairs all come out with a rotation 1-sigma under
+    `auto_phases_sigma_deg` runs once (the single-phase result bit for bit); above it, the window is matched and
+    adjusted at every view phase and the result is the mean of the four runs, each pair named with its sigma; a
+    rejected window is not redone."""
+    from dataclasses import replace
+
+    from sgde_plugin.calib import MatchConfig
+    from sgde_plugin.calib.correspondences import VIEW_PHASES
+    from sgde_plugin.geometry import mean_transform
+
+    rig_true, rig, images = box
+    load = lambda f, c: images[f][c]  # noqa: E731
+    one = MatchConfig(auto_phases=False)
+    singles = phase_singles
+    sigmas = [p["rotation_sigma_deg"] for p in singles[0][1]["windows"][0]["pairs"]]
+    assert min(sigmas) > 0.001
+
+    out, block = calibrate(rig, load, frames=slice(0, 2),
+                           match_config=replace(one, auto_phases=True, auto_phases_sigma_deg=max(sigmas) * 1.01))
+    w = block["windows"][0]
+    assert w["accepted"] and w["view_phases"] == [] and w["view_phases_because"] == []
+    for cam in out.cameras:
+        assert np.array_equal(cam.sensor_to_ego, singles[0][0].camera(cam.name).sensor_to_ego)
+
+    threshold = float(np.median(sigmas))
+    out, block = calibrate(rig, load, frames=slice(0, 2),
+                           match_config=replace(one, auto_phases=True, auto_phases_sigma_deg=threshold))
+    w = block["windows"][0]
+    assert w["accepted"] and [p["phase"] for p in w["view_phases"]] == [list(p) for p in VIEW_PHASES]
+    weak = [f"{p['a']}-{p['b']}" for p in singles[0][1]["windows"][0]["pairs"] if p["rotation_sigma_deg"] > threshold]
+    assert weak and [why.split(":")[0] for why in w["view_phases_because"]] == weak
+    for cam in out.cameras:
+        expected = mean_transform(np.stack([r.camera(cam.name).sensor_to_ego for r, _ in singles]))
+        np.testing.assert_allclose(cam.sensor_to_ego, expected, atol=1e-12)
+    assert errors(out, rig_true)[0].max() < 0.15
+
+    _, block = calibrate(rig, load, frames=slice(2, 4), match_config=replace(one, auto_phases=True,
+                                                                             auto_phases_sigma_deg=0.0))
+    w = block["windows"][0]
+    assert not w["accepted"] and w["view_phases"] == [] and w["view_phases_because"] == []

@@ -65,6 +65,12 @@ class MatchConfig:
     # grid's sub-pixel phase; averaging lowers that part of the error, at that many times the work)
     view_phases: int = 1
     view_phase: tuple[float, float] = (0.0, 0.0)  # the phase of this matching run (set by calibrate per run)
+    # calibrate, with view_phases = 1: an accepted window whose adjacent pair comes out with a rotation 1-sigma above
+    # auto_phases_sigma_deg is matched and adjusted again at the other VIEW_PHASES and the mean kept, as with
+    # view_phases = 4 (the same reasoning as auto_links_sigma_deg below; windows whose pairs are better determined
+    # than that, e.g. every preset and the real DDAD sample, run once)
+    auto_phases: bool = True
+    auto_phases_sigma_deg: float = 0.02
     cross_time: bool = True
     guided_below: int = 0  # > 0: guided matching on camera pairs whose best observation pair has fewer inliers
     consensus_px: float = 1.5

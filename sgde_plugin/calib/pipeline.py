@@ -299,7 +299,8 @@ class Judged:
     matches: list[PairMatches]
     used: list[PairMatches]
     links_for: list[str] = field(default_factory=list)  # why the window was redone with every same-camera link
-    phases: list[dict] = field(default_factory=list)  # with MatchConfig.view_phases > 1: each run's outcome
+    phases: list[dict] = field(default_factory=list)  # with more than one view phase: each run's outcome
+    phases_for: list[str] = field(default_factory=list)  # why the window was redone at every view phase
 
 
 def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
@@ -321,20 +322,29 @@ def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], e
 
 def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
                   start: dict[str, np.ndarray]) -> Judged:
-    """`_judge` once per view phase (`MatchConfig.view_phases`); with more than one, the window is accepted when
-    more than half of the runs are, with the mean of their extrinsics and focal scales; matches, sigmas and the
-    rest of the report are the first accepted run's."""
-    phases = VIEW_PHASES[: setup.match.view_phases]
-    if len(phases) == 1 or setup.method == "none":
+    """`_judge` once per view phase (`MatchConfig.view_phases`, or all of them when `MatchConfig.auto_phases` finds
+    the single run's pairs weakly determined, `_weak_pairs`); with more than one, the window is accepted when more
+    than half of the runs are, with the mean of their extrinsics and focal scales; matches, sigmas and the rest of
+    the report are the first accepted run's."""
+    k = setup.match.view_phases
+    phases = VIEW_PHASES[:k] if k > 1 else (setup.match.view_phase,)
+    if setup.method == "none":
         return _judge(rig, setup, cams, win, ego, start)
-    runs = [_judge(rig, replace(setup, match=replace(setup.match, view_phase=p)), cams, win, ego, start)
-            for p in phases]
+    runs = [_judge(rig, replace(setup, match=replace(setup.match, view_phase=phases[0])), cams, win, ego, start)]
+    why: list[str] = []
+    if k == 1:
+        why = _weak_pairs(setup, runs[0])
+        if not why:
+            return runs[0]
+        phases = phases + tuple(p for p in VIEW_PHASES if p != phases[0])[: len(VIEW_PHASES) - 1]
+    runs += [_judge(rig, replace(setup, match=replace(setup.match, view_phase=p)), cams, win, ego, start)
+             for p in phases[1:]]
     ok = [r for r in runs if r.verdict.accepted and r.result is not None]
     rows = [{"phase": list(p), "accepted": r.verdict.accepted, "rule": r.verdict.rule} for p, r in zip(phases, runs)]
     if 2 * len(ok) <= len(runs):
         first = next(r for r in runs if not r.verdict.accepted)
-        why = f"{len(ok)} of {len(runs)} view phases accepted; the first rejected: {first.verdict.reason}"
-        return replace(first, verdict=replace(first.verdict, reason=why), phases=rows)
+        reason = f"{len(ok)} of {len(runs)} view phases accepted; the first rejected: {first.verdict.reason}"
+        return replace(first, verdict=replace(first.verdict, reason=reason), phases=rows, phases_for=why)
     result = _mean_result([r.result for r in ok])
     centre = {**start, **result.sensor_to_ego}
     for row, r in zip(rows, runs):  # how far each accepted run's adjacent relative rotations are from the mean's
@@ -342,7 +352,17 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
             after = {**start, **r.result.sensor_to_ego}
             turned = rotation_changes(centre, after, setup.pairs)
             row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(v, 5) for (a, b), v in turned.items()}
-    return replace(ok[0], result=result, phases=rows)
+    return replace(ok[0], result=result, phases=rows, phases_for=why)
+
+
+def _weak_pairs(setup: Setup, judged: Judged) -> list[str]:
+    """The adjacent pairs of an accepted single-phase run whose relative rotation the adjustment determined to worse
+    than `MatchConfig.auto_phases_sigma_deg` (empty when `MatchConfig.auto_phases` is off)."""
+    cfg = setup.match
+    if not cfg.auto_phases or cfg.view_phases != 1 or not judged.verdict.accepted or judged.result is None:
+        return []
+    return [f"{a}-{b}: rotation sigma {s:.3f} deg" for (a, b), s in judged.result.pair_rotation_sigma_deg.items()
+            if s > cfg.auto_phases_sigma_deg]
 
 
 def _mean_result(results: list[MethodResult]) -> MethodResult:
@@ -425,6 +445,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "same_camera_links": _links_kept(j.matches),
         "links_because": j.links_for,
         "view_phases": j.phases,
+        "view_phases_because": j.phases_for,
         "pairs": _pair_rows(j.matches, j.used, j.result, moved,
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),

@@ -19,6 +19,8 @@ METHODS = ("glc", "wo-glc", "pairwise", "none")
 # --links: the MatchConfig fields of each mode
 LINK_MODES = {"auto": {}, "all": {"temporal_links": True, "mono_links": True}, "touching": {"temporal_links": True},
               "off": {"auto_links": False}}
+PHASE_MODES = {"auto": {"view_phases": 1, "auto_phases": True},
+               **{str(k): {"view_phases": k, "auto_phases": False} for k in range(1, 5)}}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,10 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "one, when a pair seen only across time comes out with a rotation 1-sigma above 0.02 "
                              "deg: the window is redone with them), 'all', 'touching' (those that extend a pair's "
                              "tracks) or 'off'")
-    parser.add_argument("--view-phases", type=integer(1, 4), default=1, metavar="K",
+    parser.add_argument("--view-phases", choices=PHASE_MODES, default=None, metavar="K|auto",
                         help="match and adjust each window K times (1-4) with the overlap views' pixel grids moved by "
                              "half a pixel, and keep the mean of the accepted runs (lowers the part of the error "
-                             "that follows the views' sampling; K times the work; default 1)")
+                             "that follows the views' sampling; K times the work); 'auto': once, and at all four "
+                             "phases when an adjacent pair comes out with a rotation 1-sigma above 0.02 deg "
+                             "(default: auto)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
@@ -119,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
                             max_iterations=args.max_iterations)
     acfg = AdjustConfig() if args.refine_focal is None else AdjustConfig(refine_focal=args.refine_focal)
     refine = {} if args.refine_keypoints is None else {"refine": args.refine_keypoints}
-    mcfg = MatchConfig(**refine, **LINK_MODES[args.links], view_phases=args.view_phases)
+    mcfg = MatchConfig(**refine, **LINK_MODES[args.links], **PHASE_MODES.get(args.view_phases, {}))
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
                                loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg)
     write_rig_json(out_rig, args.out)
