@@ -36,6 +36,10 @@ def test_calibrate_writes_a_refined_rig(folder, tmp_path, capsys):
     assert json.loads(report.read_text()) == block
     assert block["method"] == "glc" and block["windows"][0]["accepted"]
     assert block["keypoint_refinement"] is False  # no --refine-keypoints: "auto", off on this pinhole rig
+    # no --view-phases: "auto"; this toy rig's pairs come out at 0.03-0.05 deg 1-sigma, so all four phases ran
+    win = block["windows"][0]
+    assert [p["phase"] for p in win["view_phases"]] == [[0.0, 0.0], [0.5, 0.5], [0.5, 0.0], [0.0, 0.5]]
+    assert win["view_phases_because"] and all("rotation sigma" in why for why in win["view_phases_because"])
     truth = read_rig_json(folder / "rig_true.json")
     before = max(r["rotation_deg"] for r in relative_pose_errors(read_rig_json(folder / "rig.json"), truth))
     after = max(r["rotation_deg"] for r in relative_pose_errors(refined, truth))
@@ -47,18 +51,21 @@ def test_calibrate_writes_a_refined_rig(folder, tmp_path, capsys):
 
 @pytest.mark.parametrize("flag,on", [("--refine-keypoints", True), ("--no-refine-keypoints", False)])
 def test_refine_keypoints_flags_force_the_refinement(folder, tmp_path, flag, on):
-    """The flags override "auto" (which is off on this pinhole rig); the block says what ran."""
+    """The flags override "auto" (which is off on this pinhole rig); the block says what ran. (`--view-phases 1`: one
+    run, no phases, where the default would redo this toy rig's window four times.)"""
     out = tmp_path / "rig.json"
-    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", flag]) == 0
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", flag, "--view-phases", "1"]) == 0
     block = read_rig_json(out).extra["calibration"]
     assert block["keypoint_refinement"] is on and block["windows"][0]["accepted"]
+    assert block["windows"][0]["view_phases"] == [] and block["windows"][0]["view_phases_because"] == []
 
 
 @pytest.mark.parametrize("mode,kept", [("all", "all"), ("touching", "touching"), ("off", "none")])
 def test_links_option_sets_the_same_camera_links(folder, tmp_path, mode, kept):
     """`--links` chooses which same-camera links the adjustment gets; the window report says which it had."""
     out = tmp_path / "rig.json"
-    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", "--links", mode]) == 0
+    assert main(["calibrate", str(folder), "--out", str(out), "--frames", "0:2", "--links", mode,
+                 "--view-phases", "1"]) == 0
     win = read_rig_json(out).extra["calibration"]["windows"][0]
     assert win["accepted"] and win["same_camera_links"] == kept and win["links_because"] == []
     assert (sum(p["same_camera_links"] for p in win["pairs"]) > 0) == (mode != "off")
