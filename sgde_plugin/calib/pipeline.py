@@ -359,7 +359,7 @@ def _weak_pairs(setup: Setup, judged: Judged) -> list[str]:
     """The adjacent pairs of an accepted single-phase run whose relative rotation the adjustment determined to worse
     than `MatchConfig.auto_phases_sigma_deg` (empty when `MatchConfig.auto_phases` is off)."""
     cfg = setup.match
-    if not cfg.auto_phases or cfg.view_phases != 1 or not judged.verdict.accepted or judged.result is None:
+    if not cfg.auto_phases or not judged.verdict.accepted or judged.result is None:
         return []
     return [f"{a}-{b}: rotation sigma {s:.3f} deg" for (a, b), s in judged.result.pair_rotation_sigma_deg.items()
             if s > cfg.auto_phases_sigma_deg]
