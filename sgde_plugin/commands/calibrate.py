@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "one, when a pair seen only across time comes out with a rotation 1-sigma above 0.02 "
                              "deg: the window is redone with them), 'all', 'touching' (those that extend a pair's "
                              "tracks) or 'off'")
-    parser.add_argument("--view-phases", choices=PHASE_MODES, default=None, metavar="K|auto",
+    parser.add_argument("--view-phases", choices=PHASE_MODES, default="auto", metavar="K|auto",
                         help="match and adjust each window K times (1-4) with the overlap views' pixel grids moved by "
                              "half a pixel, and keep the mean of the accepted runs (lowers the part of the error "
                              "that follows the views' sampling; K times the work); 'auto': once, and at all four "
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
                             max_iterations=args.max_iterations)
     acfg = AdjustConfig() if args.refine_focal is None else AdjustConfig(refine_focal=args.refine_focal)
     refine = {} if args.refine_keypoints is None else {"refine": args.refine_keypoints}
-    mcfg = MatchConfig(**refine, **LINK_MODES[args.links], **PHASE_MODES.get(args.view_phases, {}))
+    mcfg = MatchConfig(**refine, **LINK_MODES[args.links], **PHASE_MODES[args.view_phases])
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
                                loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg)
     write_rig_json(out_rig, args.out)
