@@ -211,6 +211,7 @@ class Pinhole(CameraModel):
         return xd, yd
 
     def project_torch(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Perspective division, the OpenCV distortion when set, then K; points behind the camera are invalid."""
         K = _param(self.K, points)
         z = points[..., 2]
         front = z > 1e-9
@@ -222,6 +223,7 @@ class Pinhole(CameraModel):
         return uv, front & self.in_image(uv)
 
     def unproject_torch(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        """K^-1, then the distortion inverted by Newton steps; rays at z = 1, normalised."""
         K = _param(self.K, uv)
         xd, yd = _apply_K_inv(K, uv)
         x, y = xd, yd
@@ -259,9 +261,11 @@ class Pinhole(CameraModel):
         return {"K": _float_list(self.K), "dist": None if self.dist is None else _float_list(self.dist)}
 
     def resized(self, width: int, height: int) -> Pinhole:
+        """K scaled to the new size (pixel centres kept); the distortion is unchanged."""
         return Pinhole(width, height, _resize_K(self.K, width / self.width, height / self.height), self.dist)
 
     def with_focal_scale(self, scale: float) -> Pinhole:
+        """fx, fy times `scale`; principal point and distortion unchanged."""
         return Pinhole(self.width, self.height, _focal_scaled_K(self.K, scale), self.dist)
 
 
@@ -282,6 +286,7 @@ class KannalaBrandt(CameraModel):
         return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
 
     def project_torch(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """theta -> theta_d by the polynomial, then K; valid inside fov_deg and the image."""
         K, k = _param(self.K, points), _param(self.dist, points)
         r, on_axis = _safe_norm2(points[..., 0], points[..., 1])
         theta = torch.atan2(r, points[..., 2])
@@ -296,6 +301,7 @@ class KannalaBrandt(CameraModel):
         return uv, valid
 
     def unproject_torch(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        """K^-1, then theta from theta_d by Newton steps; valid inside fov_deg and the image."""
         K, k = _param(self.K, uv), _param(self.dist, uv)
         xd, yd = _apply_K_inv(K, uv)
         theta_d, on_axis = _safe_norm2(xd, yd)
@@ -315,10 +321,12 @@ class KannalaBrandt(CameraModel):
         return {"K": _float_list(self.K), "dist": _float_list(self.dist), "fov_deg": float(self.fov_deg)}
 
     def resized(self, width: int, height: int) -> KannalaBrandt:
+        """K scaled to the new size (pixel centres kept); the polynomial is unchanged."""
         K = _resize_K(self.K, width / self.width, height / self.height)
         return KannalaBrandt(width, height, K, self.dist, self.fov_deg)
 
     def with_focal_scale(self, scale: float) -> KannalaBrandt:
+        """fx, fy times `scale`; principal point and polynomial unchanged."""
         return KannalaBrandt(self.width, self.height, _focal_scaled_K(self.K, scale), self.dist, self.fov_deg)
 
 
@@ -344,6 +352,7 @@ class Ocam(CameraModel):
     newton_iterations: ClassVar[int] = 6
 
     def project_torch(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """The ray's elevation to a sensor radius (inverse polynomial, refined on poly), then the affine map."""
         poly, inv_poly = _param(self.poly, points), _param(self.inv_poly, points)
         dpoly = _polyder(poly)
         c, d, e = _param(self.affine, points)
@@ -369,6 +378,7 @@ class Ocam(CameraModel):
         return uv, valid
 
     def unproject_torch(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        """The inverse affine map, then poly(rho) gives the ray; valid inside fov_deg and the image."""
         poly = _param(self.poly, uv)
         c, d, e = _param(self.affine, uv)
         row_c, col_c = _param(self.center, uv)
@@ -389,6 +399,7 @@ class Ocam(CameraModel):
         return {**arrays, "fov_deg": float(self.fov_deg)}
 
     def resized(self, width: int, height: int) -> Ocam:
+        """Polynomials and centre scaled for a uniform resize (ValueError otherwise)."""
         s = width / self.width
         if abs(height / self.height - s) > 1e-3 * s:
             raise ValueError("an ocam camera can only be resized uniformly")
@@ -403,6 +414,7 @@ class Ocam(CameraModel):
         )
 
     def with_focal_scale(self, scale: float) -> Ocam:
+        """Sensor radii times `scale` for the same rays: inv_poly times s, poly(rho) -> s poly(rho / s)."""
         # sensor radii times s: inv_poly times s, poly(rho) -> s poly(rho / s) (the same ray)
         powers = np.arange(len(self.poly))
         return Ocam(self.width, self.height, poly=np.asarray(self.poly) * scale ** (1.0 - powers),

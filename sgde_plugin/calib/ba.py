@@ -406,7 +406,7 @@ class _Problem:
         S[self.ref] = S_ref
         return S
 
-    def obs_terms(self, st: _State, jacobians: bool, poses: bool = True):
+    def obs_terms(self, st: _State, jacobians: bool, poses: bool = True) -> np.ndarray | tuple:
         """Residuals (N, 2); with `jacobians` also d r / d pose (N, 2, 12; None without `poses`) and
         d r / d point (N, 2, 3): `terms` with the observations first."""
         out = self.terms(st, jacobians, poses)
@@ -415,7 +415,7 @@ class _Problem:
         r, Jp, Jl = out
         return r.T, None if Jp is None else np.moveaxis(Jp, 2, 0), np.moveaxis(Jl, 2, 0)
 
-    def terms(self, st: _State, jacobians: bool, poses: bool = True):
+    def terms(self, st: _State, jacobians: bool, poses: bool = True) -> np.ndarray | tuple:
         """Residuals (2, N); with `jacobians` also d r / d pose (2, 12, N; None without `poses`) and
         d r / d point (2, 3, N). The observations are the last axis: numpy's products of many tiny matrices
         are an order of magnitude faster component by component over a long axis than as stacked matrices.

@@ -36,7 +36,8 @@ def lm_step(prob: _Problem, st: _State, lam: float) -> tuple[_State, float, np.n
     return trial, float(np.abs(dp[keep]).max(initial=0.0)), r
 
 
-def reduced_system(prob: _Problem, st: _State, lam: float):
+def reduced_system(prob: _Problem, st: _State, lam: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The damped normal equations of the poses with the points eliminated (Schur complement): S, the
     right-hand side, and what the point back-substitution needs (Hlp, Hll^-1, gl)."""
     o, n = prob.obs, prob.n_full

@@ -86,6 +86,7 @@ class _Evidence:
 
     @classmethod
     def empty(cls, n: int) -> _Evidence:
+        """No evidence yet for n keypoints."""
         return cls(np.zeros(n, dtype=bool), np.full(n, np.nan), np.full(n, np.inf))
 
     def add(self, idx: np.ndarray, moving: np.ndarray, inv_range: np.ndarray, sigma: np.ndarray) -> None:

@@ -95,6 +95,7 @@ class _Group:
 
     def add(self, prior: np.ndarray, gt: np.ndarray, select: np.ndarray, overlap: np.ndarray,
             conf: np.ndarray | None = None) -> None:
+        """Pool one image's prior and ground truth at the selected pixels (and its confidence, when given)."""
         sel = select & (prior > 0) & (gt > 0)
         self.pred.append(prior[sel].astype(np.float32))
         self.gt.append(gt[sel].astype(np.float32))
@@ -113,6 +114,7 @@ class _Group:
                                     np.concatenate(self.overlap_conf), max_depth=max_depth)
 
     def result(self, max_depth: float) -> dict[str, Any]:
+        """Coverage and depth metrics of everything pooled so far."""
         pred = np.concatenate(self.pred) if self.pred else np.zeros(0, np.float32)
         gt = np.concatenate(self.gt) if self.gt else np.zeros(0, np.float32)
         m = depth_metrics(pred, gt, max_depth=max_depth)

@@ -10,6 +10,7 @@ vertical cylinders (poles). Moving boxes have a constant velocity; the ego drive
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -98,11 +99,15 @@ class _Boxes:
     def __init__(self) -> None:
         self.rows: list[tuple] = []
 
-    def add(self, center, half, yaw=0.0, velocity=(0.0, 0.0, 0.0), material=FACADE, color=(0.5, 0.5, 0.5),
-            params=(0.0,) * 6, tex_offset=(0.0, 0.0)) -> None:
+    def add(self, center: Sequence[float], half: Sequence[float], yaw: float = 0.0,
+            velocity: Sequence[float] = (0.0, 0.0, 0.0), material: int = FACADE,
+            color: Sequence[float] = (0.5, 0.5, 0.5), params: Sequence[float] = (0.0,) * 6,
+            tex_offset: Sequence[float] = (0.0, 0.0)) -> None:
+        """One box row: centre, half sizes, yaw, velocity, material, colour, material parameters, texture offset."""
         self.rows.append((center, half, yaw, velocity, material, color, params, tex_offset))
 
     def arrays(self) -> dict[str, np.ndarray]:
+        """The rows as the world's box arrays."""
         cols = list(zip(*self.rows))
         return {
             "box_center": np.asarray(cols[0], dtype=np.float64).reshape(-1, 3),
