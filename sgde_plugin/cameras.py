@@ -415,7 +415,6 @@ class Ocam(CameraModel):
 
     def with_focal_scale(self, scale: float) -> Ocam:
         """Sensor radii times `scale` for the same rays: inv_poly times s, poly(rho) -> s poly(rho / s)."""
-        # sensor radii times s: inv_poly times s, poly(rho) -> s poly(rho / s) (the same ray)
         powers = np.arange(len(self.poly))
         return Ocam(self.width, self.height, poly=np.asarray(self.poly) * scale ** (1.0 - powers),
                     inv_poly=np.asarray(self.inv_poly) * scale, center=np.asarray(self.center),
