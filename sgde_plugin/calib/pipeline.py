@@ -11,6 +11,9 @@ length where the images determine it (see `ba.robust_adjust`): the rig carries t
 (fx, fy scaled; an ocam model's polynomials), each window's report lists every camera's estimate, its
 1-sigma and whether it was adopted (`focal`), and a history entry that changed any keeps the window's
 intrinsics (`intrinsics_at`); the next window starts from them.
+A history entry also keeps its pairs' rotation 1-sigmas (`pair_sigmas_at`): a later window that agrees with it
+and determines the rig markedly worse (a car that creeps) does not replace it (rule `less_precise`,
+`acceptance.check_precision`). Each window's report gives how far the ego travelled over it (`ego_travel_m`).
 The block's top-level `accepted` is true when at least one window of this run was accepted; each
 entry of `windows` has its own verdict, the rule that fired and a one-line reason.
 """
@@ -32,10 +35,12 @@ from ..rigfile import intrinsics_from_dict
 from ..stereo.rectify import torch_threads
 from .acceptance import (
     OBSERVED,
+    STILL_EGO_M,
     THROUGH_RING,
     AcceptanceRules,
     Verdict,
     check_correspondences,
+    check_precision,
     check_result,
     default_beta,
     rotation_changes,
@@ -102,6 +107,21 @@ def calibration_at(block: Mapping[str, Any], timestamp_us: int) -> dict[str, np.
     if best is None:
         return None
     return {k: np.asarray(v, dtype=np.float64) for k, v in best["sensor_to_ego"].items()}
+
+
+def pair_sigmas_at(block: Mapping[str, Any], timestamp_us: int, where: Any = None) -> dict[tuple[str, str], float]:
+    """Per adjacent pair, the rotation 1-sigma (deg) of the calibration in effect at `timestamp_us` (empty when
+    none is, or its history entry predates the field); `where` names the file in the error of a damaged entry."""
+    best = _entry_at(block, timestamp_us)
+    rows = best.get("pair_rotation_sigma_deg", []) if best is not None else []
+    out = {}
+    for row in rows if isinstance(rows, list) else [rows]:
+        ok = isinstance(row, list) and len(row) == 3 and all(isinstance(x, str) for x in row[:2])
+        if not (ok and isinstance(row[2], (int, float)) and not isinstance(row[2], bool) and row[2] > 0):
+            raise InputError(where, "calibration.history.pair_rotation_sigma_deg",
+                             f"expected [camera, camera, degrees > 0] rows, got {str(row)[:60]}")
+        out[(row[0], row[1])] = float(row[2])
+    return out
 
 
 def intrinsics_at(block: Mapping[str, Any], timestamp_us: int) -> dict[str, CameraModel]:
@@ -421,15 +441,39 @@ def _focal_rows(start: Mapping[str, CameraModel], result: MethodResult | None) -
     return rows
 
 
+def ego_travel_m(ego: np.ndarray) -> float:
+    """Largest distance (m) between two ego positions of a window (poses (T, 4, 4) or (T, M, 4, 4))."""
+    pos = np.asarray(ego, dtype=np.float64)[..., :3, 3].reshape(-1, 3)
+    return float(np.linalg.norm(pos[:, None] - pos[None], axis=-1).max()) if len(pos) else 0.0
+
+
+def _still_explained(verdict: Verdict, travel_m: float) -> Verdict:
+    """A rejection by the adjustment's rules, with the cause added when the car stood still over the window."""
+    if verdict.accepted or travel_m >= STILL_EGO_M or verdict.rule not in ("not_converged", "weakly_constrained"):
+        return verdict
+    fired = verdict.fired_list()
+    why = (f"{fired[0][1]}; the ego moved {travel_m:.3f} m over the window: with the car standing still no match "
+           "across time measures depth, so a narrow overlap does not fix its pair; calibrate from frames where it "
+           "moves")
+    return Verdict.of([(fired[0][0], why), *fired[1:]])
+
+
 def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], start: dict[str, np.ndarray],
-                      start_intr: dict[str, CameraModel]) -> WindowResult:
-    """Calibrate and judge one window (from the extrinsics and intrinsics in effect); its report entry."""
+                      start_intr: dict[str, CameraModel],
+                      in_effect_sigma: Mapping[tuple[str, str], float]) -> WindowResult:
+    """Calibrate and judge one window (from the extrinsics and intrinsics in effect, whose pairs' rotation 1-sigmas
+    are `in_effect_sigma`); its report entry."""
     involved = [c.name for c in rig.cameras if any(c.name in p for p in setup.pairs)]
     cams = [Camera(c.name, start_intr[c.name], start[c.name]) for c in rig.cameras if c.name in involved]
     ego = window_ego_poses(rig, win, involved)
+    travel = ego_travel_m(ego)
     t_win = time.perf_counter()
     before = dict(setup.timings.seconds)
     j = _judge_phases(rig, setup, cams, win, ego, start)
+    if j.verdict.accepted and j.result is not None and in_effect_sigma:
+        turned = rotation_changes(start, {**start, **j.result.sensor_to_ego}, setup.pairs)
+        j = replace(j, verdict=check_precision(in_effect_sigma, j.result.pair_rotation_sigma_deg, turned, setup.rules))
+    j = replace(j, verdict=_still_explained(j.verdict, travel))
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
     intr = dict(start_intr)
@@ -446,6 +490,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "links_because": j.links_for,
         "view_phases": j.phases,
         "view_phases_because": j.phases_for,
+        "ego_travel_m": travel,
         "pairs": _pair_rows(j.matches, j.used, j.result, moved,
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),
@@ -475,7 +520,8 @@ def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
         in_effect = calibration_at({"history": history}, ts)
         start = {**input_ext, **(in_effect or dict(current))}
         start_intr = {**input_intr, **(intrinsics_at({"history": history}, ts) if in_effect else current_intr)}
-        res = _calibrate_window(rig, setup, k, win, start, start_intr)
+        sigma = pair_sigmas_at({"history": history}, ts, rig.root) if in_effect else {}
+        res = _calibrate_window(rig, setup, k, win, start, start_intr, sigma)
         if res.verdict.accepted:
             current, current_intr = res.after, res.intrinsics
             if setup.method != "none":
@@ -483,6 +529,8 @@ def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
                          "sensor_to_ego": _matrix_dict(res.after)}
                 if res.report["focal"]:
                     entry["intrinsics"] = {n: m.to_dict() for n, m in res.intrinsics.items()}
+                entry["pair_rotation_sigma_deg"] = [[p["a"], p["b"], p["rotation_sigma_deg"]]
+                                                    for p in res.report["pairs"] if (p["rotation_sigma_deg"] or 0) > 0]
                 history.append(entry)
         reports.append(res.report)
     block = _block(setup, reports, history)
