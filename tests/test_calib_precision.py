@@ -26,6 +26,9 @@ def test_check_precision_keeps_the_more_precise_calibration_unless_the_mount_mov
     assert "B-C 1-sigma 0.500 deg against 0.050 deg" in v.reason and "within 0.8 combined" in v.reason
     # 2.0 deg on B-C is 3.98 combined sigmas: the mount moved, the window is adopted
     assert check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 2.0}, rules).accepted
+    # ... unless the car stood still: such a window's sigmas do not bound its error
+    still = check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 2.0}, rules, still=True)
+    assert still.rule == "less_precise" and still.reason.startswith("was taken while the car stood still")
     # 1.8x less precise is within the ratio of 2
     assert check_precision(before, {("A", "B"): 0.05, ("B", "C"): 0.09}, {}, rules).accepted
     assert check_precision({}, worse, {}, rules).accepted  # nothing in effect to compare with

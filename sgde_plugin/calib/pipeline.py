@@ -472,7 +472,8 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
     j = _judge_phases(rig, setup, cams, win, ego, start)
     if j.verdict.accepted and j.result is not None and in_effect_sigma:
         turned = rotation_changes(start, {**start, **j.result.sensor_to_ego}, setup.pairs)
-        j = replace(j, verdict=check_precision(in_effect_sigma, j.result.pair_rotation_sigma_deg, turned, setup.rules))
+        j = replace(j, verdict=check_precision(in_effect_sigma, j.result.pair_rotation_sigma_deg, turned, setup.rules,
+                                               still=travel < STILL_EGO_M))
     j = replace(j, verdict=_still_explained(j.verdict, travel))
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
