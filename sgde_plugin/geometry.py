@@ -91,13 +91,15 @@ def rotation_angle_deg(R: np.ndarray) -> float | np.ndarray:
     return float(angle) if np.ndim(angle) == 0 else angle
 
 
-def mean_transform(transforms: np.ndarray) -> np.ndarray:
-    """Mean of rigid transforms (K, 4, 4): the rotation nearest (Frobenius) to the mean rotation matrix, the mean
-    translation (the chordal L2 mean; for rotations a few hundredths of a degree apart it is their centroid)."""
+def mean_transform(transforms: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Mean of rigid transforms (K, 4, 4), weighted by `weights` (K,) when given: the rotation nearest (Frobenius)
+    to the mean rotation matrix, the mean translation (the chordal L2 mean; for rotations a few hundredths of a
+    degree apart it is their centroid)."""
     T = np.asarray(transforms, dtype=np.float64)
-    U, _, Vt = np.linalg.svd(T[:, :3, :3].mean(axis=0))
+    w = np.full(len(T), 1.0 / len(T)) if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
+    U, _, Vt = np.linalg.svd(np.einsum("k,kij->ij", w, T[:, :3, :3]))
     R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return make_transform(R, T[:, :3, 3].mean(axis=0))
+    return make_transform(R, w @ T[:, :3, 3])
 
 
 def quaternion_to_rotation(q_wxyz: np.ndarray) -> np.ndarray:

@@ -214,28 +214,47 @@ def check_result(
     return Verdict.of(fired)
 
 
+def _common_pairs(in_effect_sigma_deg: Mapping[tuple[str, str], float],
+                  sigma_deg: Mapping[tuple[str, str], float]) -> list[tuple[str, str]]:
+    """Pairs with a finite, positive 1-sigma in both."""
+    return [p for p in sigma_deg if np.isfinite(sigma_deg[p]) and np.isfinite(in_effect_sigma_deg.get(p, np.nan))
+            and min(sigma_deg[p], in_effect_sigma_deg[p]) > 0]
+
+
+def disagreement_sigmas(in_effect_sigma_deg: Mapping[tuple[str, str], float],
+                        sigma_deg: Mapping[tuple[str, str], float],
+                        turned_deg: Mapping[tuple[str, str], float]) -> float:
+    """The largest turn of a pair between the calibration in effect and a window's (`turned_deg`), in combined
+    1-sigmas of the two; inf when they have no pair in common."""
+    common = _common_pairs(in_effect_sigma_deg, sigma_deg)
+    if not common:
+        return float("inf")
+    return max(turned_deg.get(p, 0.0) / float(np.hypot(sigma_deg[p], in_effect_sigma_deg[p])) for p in common)
+
+
 def check_precision(in_effect_sigma_deg: Mapping[tuple[str, str], float], sigma_deg: Mapping[tuple[str, str], float],
                     turned_deg: Mapping[tuple[str, str], float], rules: AcceptanceRules,
                     still: bool = False) -> Verdict:
-    """Reject (`less_precise`) an accepted window whose worst pair is determined more than `max_sigma_ratio` times
-    worse than the calibration in effect's and that agrees with it within `consistent_sigmas` combined 1-sigmas on
-    every pair, or was taken while the car stood still (`still`: its sigmas do not bound its error, so no
-    disagreement of it is evidence that the mount moved); `turned_deg`: per pair, how far the window turned it
-    from the calibration in effect. Pairs without a finite 1-sigma on both sides are not compared."""
-    common = [p for p in sigma_deg if np.isfinite(sigma_deg[p]) and np.isfinite(in_effect_sigma_deg.get(p, np.nan))
-              and min(sigma_deg[p], in_effect_sigma_deg[p]) > 0]
+    """Reject (`less_precise`) an accepted window that was taken while the car stood still (`still`: its sigmas do
+    not bound its error, so it neither shows that the mount moved nor adds to what is known), or whose worst pair is
+    determined more than `max_sigma_ratio` times worse than the calibration in effect's while it agrees with it
+    within `consistent_sigmas` combined 1-sigmas on every pair; `turned_deg`: per pair, how far the window turned
+    it from the calibration in effect. Pairs without a finite 1-sigma on both sides are not compared."""
+    common = _common_pairs(in_effect_sigma_deg, sigma_deg)
     if not common:
         return Verdict(True)
     worst = max(common, key=lambda p: sigma_deg[p])
     worst_before = max(in_effect_sigma_deg[p] for p in common)
+    a, b = worst
+    sigmas = f"worst pair {a}-{b} 1-sigma {sigma_deg[worst]:.3f} deg against {worst_before:.3f} deg"
+    if still:
+        return Verdict(False, "less_precise", f"was taken while the car stood still, so its 1-sigmas do not bound its "
+                                              f"error ({sigmas}): the calibration in effect is kept")
     if not sigma_deg[worst] > rules.max_sigma_ratio * worst_before:
         return Verdict(True)
-    z = max(turned_deg.get(p, 0.0) / float(np.hypot(sigma_deg[p], in_effect_sigma_deg[p])) for p in common)
-    if z > rules.consistent_sigmas and not still:
+    z = disagreement_sigmas(in_effect_sigma_deg, sigma_deg, turned_deg)
+    if z > rules.consistent_sigmas:
         return Verdict(True)  # the window measures a change of the mount
-    a, b = worst
-    how = ("was taken while the car stood still" if still else
-           f"agrees with the calibration in effect (every pair within {z:.1f} combined 1-sigma)")
     return Verdict(False, "less_precise",
-                   f"{how} and is less precise (worst pair {a}-{b} 1-sigma {sigma_deg[worst]:.3f} deg against "
-                   f"{worst_before:.3f} deg, more than {rules.max_sigma_ratio:g}x): the calibration in effect is kept")
+                   f"agrees with the calibration in effect (every pair within {z:.1f} combined 1-sigma) and is less "
+                   f"precise ({sigmas}, more than {rules.max_sigma_ratio:g}x): the calibration in effect is kept")

@@ -12,8 +12,11 @@ length where the images determine it (see `ba.robust_adjust`): the rig carries t
 1-sigma and whether it was adopted (`focal`), and a history entry that changed any keeps the window's
 intrinsics (`intrinsics_at`); the next window starts from them.
 A history entry also keeps its pairs' rotation 1-sigmas (`pair_sigmas_at`): a later window that agrees with it
-and determines the rig markedly worse (a car that creeps) does not replace it (rule `less_precise`,
-`acceptance.check_precision`). Each window's report gives how far the ego travelled over it (`ego_travel_m`).
+and determines the rig markedly worse (a car that creeps), or was taken standing still, does not replace it (rule
+`less_precise`, `acceptance.check_precision`); one that agrees with it within 3 combined 1-sigmas and is about as
+precise is averaged with it (`fuse_calibrations`, weights 1 / sigma^2; its entry says `fused_with_previous`, its
+report `fused_weights`); one that disagrees beyond that is a change of the mount and replaces it. Each window's
+report gives how far the ego travelled over it (`ego_travel_m`).
 The block's top-level `accepted` is true when at least one window of this run was accepted; each
 entry of `windows` has its own verdict, the rule that fired and a one-line reason.
 """
@@ -43,6 +46,7 @@ from .acceptance import (
     check_precision,
     check_result,
     default_beta,
+    disagreement_sigmas,
     rotation_changes,
     translation_changes,
 )
@@ -190,7 +194,8 @@ def calibrate(
     acceptance.default_beta, 200 iterations, alpha = 0.3 m), match_config, adjust_config, reference,
     timings, show_progress, match_cache (a dict shared between calls on the same images, e.g. to compare
     methods: features and matches are reused when window, matcher settings (same-camera links aside) and
-    starting extrinsics agree).
+    starting extrinsics agree), fuse_windows (default True: an accepted window that agrees with the calibration
+    in effect is averaged with it, `fuse_calibrations`, instead of replacing it).
     """
     with torch_threads(1):
         setup = _setup(rig, images, method, frames, matcher, **options)
@@ -215,6 +220,7 @@ class Setup:
     show_progress: bool | None
     match_cache: dict | None
     pairs: list[tuple[str, str]]
+    fuse_windows: bool = True
 
 
 def _check_match_config(cfg: MatchConfig) -> None:
@@ -241,6 +247,7 @@ def _setup(
     timings: Timings | None = None,
     show_progress: bool | None = None,
     match_cache: dict | None = None,
+    fuse_windows: bool = True,
 ) -> Setup:
     """Check the options (InputError for bad ones) and fill in the defaults."""
     if method not in METHODS:
@@ -270,7 +277,7 @@ def _setup(
         acfg = replace(acfg, refine_focal=False)
     masks = {c: m for c in rig.camera_names if (m := rig.load_mask(c)) is not None}
     return Setup(method, matcher, tuple(selected), window, rules, mcfg, acfg, ref, images or rig.load_image, masks,
-                 timings or Timings(), show_progress, match_cache, list(rig.pairs))
+                 timings or Timings(), show_progress, match_cache, list(rig.pairs), bool(fuse_windows))
 
 
 @dataclass
@@ -281,6 +288,31 @@ class WindowResult:
     after: dict[str, np.ndarray]
     report: dict[str, Any]
     intrinsics: dict[str, CameraModel]  # after the window (refined focal lengths when accepted)
+    pair_sigma_deg: dict[tuple[str, str], float] = field(default_factory=dict)  # of `after`
+
+
+@dataclass
+class Fused:
+    """The calibration in effect and a window's, averaged with weights 1 / (worst pair's 1-sigma)^2."""
+
+    extrinsics: dict[str, np.ndarray]
+    pair_sigma_deg: dict[tuple[str, str], float]
+    weights: tuple[float, float]  # in effect, window (summing to 1)
+
+
+def fuse_calibrations(in_effect: Mapping[str, np.ndarray], in_effect_sigma_deg: Mapping[tuple[str, str], float],
+                      window: Mapping[str, np.ndarray], window_sigma_deg: Mapping[tuple[str, str], float]) -> Fused:
+    """Precision-weighted mean of two calibrations of one rig that agree (independent windows): every camera's
+    extrinsics by `mean_transform`, each by 1 / (its worst pair's rotation 1-sigma)^2; a pair's fused 1-sigma
+    combines the two as independent estimates (one that only the window has keeps the window's)."""
+    common = [p for p in window_sigma_deg if p in in_effect_sigma_deg]
+    w = np.array([1.0 / max(in_effect_sigma_deg[p] for p in common) ** 2,
+                  1.0 / max(window_sigma_deg[p] for p in common) ** 2])
+    w /= w.sum()
+    ext = {n: mean_transform(np.stack([in_effect[n], window[n]]), w) for n in window}
+    sigma = {p: float((in_effect_sigma_deg[p] ** -2 + s ** -2) ** -0.5) if p in in_effect_sigma_deg else s
+             for p, s in window_sigma_deg.items()}
+    return Fused(ext, sigma, (float(w[0]), float(w[1])))
 
 
 def window_ego_poses(rig: Rig, frames: Sequence[Frame], cameras: Sequence[str]) -> np.ndarray:
@@ -458,6 +490,22 @@ def _still_explained(verdict: Verdict, travel_m: float) -> Verdict:
     return Verdict.of([(fired[0][0], why), *fired[1:]])
 
 
+def _against_in_effect(setup: Setup, verdict: Verdict, start: Mapping[str, np.ndarray],
+                       in_effect_sigma: Mapping[tuple[str, str], float], after: Mapping[str, np.ndarray],
+                       sigma: Mapping[tuple[str, str], float], travel_m: float) -> tuple[Verdict, Fused | None]:
+    """An accepted window against the calibration in effect (`start`, with its pairs' 1-sigmas): rejected when
+    less precise or taken standing still (`check_precision`), else averaged with it when the two agree
+    (`setup.fuse_windows`), else adopted as it is."""
+    if not verdict.accepted or not in_effect_sigma:
+        return verdict, None
+    turned = rotation_changes(start, after, setup.pairs)
+    verdict = check_precision(in_effect_sigma, sigma, turned, setup.rules, still=travel_m < STILL_EGO_M)
+    if (verdict.accepted and setup.fuse_windows
+            and disagreement_sigmas(in_effect_sigma, sigma, turned) <= setup.rules.consistent_sigmas):
+        return verdict, fuse_calibrations(start, in_effect_sigma, after, sigma)
+    return verdict, None
+
+
 def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], start: dict[str, np.ndarray],
                       start_intr: dict[str, CameraModel],
                       in_effect_sigma: Mapping[tuple[str, str], float]) -> WindowResult:
@@ -470,13 +518,11 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
     t_win = time.perf_counter()
     before = dict(setup.timings.seconds)
     j = _judge_phases(rig, setup, cams, win, ego, start)
-    if j.verdict.accepted and j.result is not None and in_effect_sigma:
-        turned = rotation_changes(start, {**start, **j.result.sensor_to_ego}, setup.pairs)
-        j = replace(j, verdict=check_precision(in_effect_sigma, j.result.pair_rotation_sigma_deg, turned, setup.rules,
-                                               still=travel < STILL_EGO_M))
-    j = replace(j, verdict=_still_explained(j.verdict, travel))
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
+    sigma = {p: s for p, s in res.pair_rotation_sigma_deg.items() if np.isfinite(s) and s > 0}
+    verdict, fused = _against_in_effect(setup, j.verdict, start, in_effect_sigma, after, sigma, travel)
+    j = replace(j, verdict=_still_explained(verdict, travel))
     intr = dict(start_intr)
     if j.verdict.accepted:
         intr.update({n: start_intr[n].with_focal_scale(s) for n, s in res.focal_scale.items()})
@@ -492,6 +538,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "view_phases": j.phases,
         "view_phases_because": j.phases_for,
         "ego_travel_m": travel,
+        "fused_weights": None if fused is None else {"in_effect": fused.weights[0], "window": fused.weights[1]},
         "pairs": _pair_rows(j.matches, j.used, j.result, moved,
                             setup.rules.min_correspondences),
         "iterations": int(res.iterations),
@@ -506,7 +553,9 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
                     for s in setup.timings.seconds},
         "wall_seconds": round(time.perf_counter() - t_win, 3),
     }
-    return WindowResult(j.verdict, after, report, intr)
+    if fused is not None:
+        return WindowResult(j.verdict, {**after, **fused.extrinsics}, report, intr, fused.pair_sigma_deg)
+    return WindowResult(j.verdict, after, report, intr, sigma)
 
 
 def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
@@ -530,8 +579,9 @@ def _calibrate(rig: Rig, setup: Setup) -> tuple[Rig, dict]:
                          "sensor_to_ego": _matrix_dict(res.after)}
                 if res.report["focal"]:
                     entry["intrinsics"] = {n: m.to_dict() for n, m in res.intrinsics.items()}
-                entry["pair_rotation_sigma_deg"] = [[p["a"], p["b"], p["rotation_sigma_deg"]]
-                                                    for p in res.report["pairs"] if (p["rotation_sigma_deg"] or 0) > 0]
+                entry["pair_rotation_sigma_deg"] = [[a, b, s] for (a, b), s in res.pair_sigma_deg.items()]
+                if res.report["fused_weights"] is not None:
+                    entry["fused_with_previous"] = True
                 history.append(entry)
         reports.append(res.report)
     block = _block(setup, reports, history)

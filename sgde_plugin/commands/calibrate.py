@@ -64,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "that follows the views' sampling; K times the work); 'auto': once, and at all four "
                              "phases when an adjacent pair comes out with a rotation 1-sigma above 0.02 deg "
                              "(default: auto)")
+    parser.add_argument("--fuse-windows", action=argparse.BooleanOptionalAction, default=True,
+                        help="average an accepted window that agrees with the calibration in effect (within 3 "
+                             "combined 1-sigmas) with it, weighted by precision, instead of replacing it (default on)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
@@ -125,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
     refine = {} if args.refine_keypoints is None else {"refine": args.refine_keypoints}
     mcfg = MatchConfig(**refine, **LINK_MODES[args.links], **PHASE_MODES[args.view_phases])
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
-                               loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg)
+                               loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg,
+                               fuse_windows=args.fuse_windows)
     write_rig_json(out_rig, args.out)
     if args.json:
         atomic_write_text(Path(args.json), json.dumps(block, indent=1) + "\n")
