@@ -110,6 +110,8 @@ def test_fuse_calibrations_weights_by_precision():
     assert f.pair_sigma_deg[("A", "B")] == pytest.approx((0.1 ** -2 + 0.2 ** -2) ** -0.5)
     assert f.pair_sigma_deg[("B", "C")] == 0.5  # only the window has it
     assert np.allclose(mean_transform(np.stack([ident["B"], turned["B"]]), np.array([0.8, 0.2])), f.extrinsics["B"])
+    alone = fuse_calibrations(ident, {("X", "Y"): 0.1}, turned, {("A", "B"): 0.2})  # no pair in common
+    assert alone.weights == (0.0, 1.0) and np.array_equal(alone.extrinsics["B"], turned["B"])
 
 
 def test_a_second_driven_window_is_averaged_with_the_first():

@@ -306,6 +306,8 @@ def fuse_calibrations(in_effect: Mapping[str, np.ndarray], in_effect_sigma_deg: 
     extrinsics by `mean_transform`, each by 1 / (its worst pair's rotation 1-sigma)^2; a pair's fused 1-sigma
     combines the two as independent estimates (one that only the window has keeps the window's)."""
     common = [p for p in window_sigma_deg if p in in_effect_sigma_deg]
+    if not common:  # nothing to weigh them by: the window's, as it is
+        return Fused(dict(window), dict(window_sigma_deg), (0.0, 1.0))
     w = np.array([1.0 / max(in_effect_sigma_deg[p] for p in common) ** 2,
                   1.0 / max(window_sigma_deg[p] for p in common) ** 2])
     w /= w.sum()
