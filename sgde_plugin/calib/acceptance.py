@@ -214,7 +214,7 @@ def check_result(
     return Verdict.of(fired)
 
 
-def _common_pairs(in_effect_sigma_deg: Mapping[tuple[str, str], float],
+def common_pairs(in_effect_sigma_deg: Mapping[tuple[str, str], float],
                   sigma_deg: Mapping[tuple[str, str], float]) -> list[tuple[str, str]]:
     """Pairs with a finite, positive 1-sigma in both."""
     return [p for p in sigma_deg if np.isfinite(sigma_deg[p]) and np.isfinite(in_effect_sigma_deg.get(p, np.nan))
@@ -226,7 +226,7 @@ def disagreement_sigmas(in_effect_sigma_deg: Mapping[tuple[str, str], float],
                         turned_deg: Mapping[tuple[str, str], float]) -> float:
     """The largest turn of a pair between the calibration in effect and a window's (`turned_deg`), in combined
     1-sigmas of the two; inf when they have no pair in common."""
-    common = _common_pairs(in_effect_sigma_deg, sigma_deg)
+    common = common_pairs(in_effect_sigma_deg, sigma_deg)
     if not common:
         return float("inf")
     return max(turned_deg.get(p, 0.0) / float(np.hypot(sigma_deg[p], in_effect_sigma_deg[p])) for p in common)
@@ -240,7 +240,7 @@ def check_precision(in_effect_sigma_deg: Mapping[tuple[str, str], float], sigma_
     determined more than `max_sigma_ratio` times worse than the calibration in effect's while it agrees with it
     within `consistent_sigmas` combined 1-sigmas on every pair; `turned_deg`: per pair, how far the window turned
     it from the calibration in effect. Pairs without a finite 1-sigma on both sides are not compared."""
-    common = _common_pairs(in_effect_sigma_deg, sigma_deg)
+    common = common_pairs(in_effect_sigma_deg, sigma_deg)
     if not common:
         return Verdict(True)
     worst = max(common, key=lambda p: sigma_deg[p])

@@ -45,6 +45,7 @@ from .acceptance import (
     check_correspondences,
     check_precision,
     check_result,
+    common_pairs,
     default_beta,
     disagreement_sigmas,
     rotation_changes,
@@ -305,7 +306,7 @@ def fuse_calibrations(in_effect: Mapping[str, np.ndarray], in_effect_sigma_deg: 
     """Precision-weighted mean of two calibrations of one rig that agree (independent windows): every camera's
     extrinsics by `mean_transform`, each by 1 / (its worst pair's rotation 1-sigma)^2; a pair's fused 1-sigma
     combines the two as independent estimates (one that only the window has keeps the window's)."""
-    common = [p for p in window_sigma_deg if p in in_effect_sigma_deg]
+    common = common_pairs(in_effect_sigma_deg, window_sigma_deg)
     if not common:  # nothing to weigh them by: the window's, as it is
         return Fused(dict(window), dict(window_sigma_deg), (0.0, 1.0))
     w = np.array([1.0 / max(in_effect_sigma_deg[p] for p in common) ** 2,
