@@ -1,6 +1,7 @@
 """`sgde calibrate` on a rig folder: output file, report, exit codes for bad input (runtime ~3 s)."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -127,3 +128,24 @@ def test_no_window_accepted_one_line_exit_0_or_3_with_strict(folder, tmp_path, c
                  "--max-iterations", "2", "--strict"]) == 3
     fired = [f["rule"] for f in read_rig_json(out).extra["calibration"]["rules_fired"]]
     assert fired[0] == "not_converged" and "translation_change" in fired
+
+
+def test_a_camera_linked_to_nothing_partial_by_default_rejected_with_no_partial(folder, tmp_path, capsys):
+    blind = tmp_path / "blind"
+    shutil.copytree(folder, blind)
+    for png in blind.glob("frames/*/C2.png"):
+        write_image(png, np.zeros((180, 320, 3), np.uint8))
+    out = tmp_path / "partial.json"
+    assert main(["calibrate", str(blind), "--out", str(out), "--view-phases", "1"]) == 0
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and "block by block" in err[0] and "C2 not linked to C0" in err[0]
+    assert "C0, C1, C3, C4, C5 | C2" in err[0] and "partial" in captured.out
+    block = read_rig_json(out).extra["calibration"]
+    assert block["partial_windows"] == [0] and block["windows"][0]["blocks"][1] == ["C2"]
+    assert np.allclose(read_rig_json(out).camera("C2").sensor_to_ego,
+                       read_rig_json(blind / "rig.json").camera("C2").sensor_to_ego, rtol=0, atol=1e-12)
+    assert main(["calibrate", str(blind), "--out", str(out), "--view-phases", "1", "--no-partial", "--strict"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no window accepted" in err[0] and "min_correspondences" in err[0]
+    assert read_rig_json(out).extra["calibration"]["partial_windows"] == []

@@ -35,7 +35,7 @@ def errors(rig, rig_true):
 
 def test_glc_window_accepted_black_camera_window_rejected(box):
     rig_true, rig, images = box
-    out, block = calibrate(rig, lambda f, c: images[f][c], method="glc", window=2)
+    out, block = calibrate(rig, lambda f, c: images[f][c], method="glc", window=2, partial=False)
     w0, w1 = block["windows"]
     assert w0["accepted"] and w0["rule"] is None and w0["converged"] and w0["iterations"] <= 200
     assert not w1["accepted"] and w1["rule"] == "min_correspondences"
@@ -63,11 +63,37 @@ def test_glc_window_accepted_black_camera_window_rejected(box):
 def test_previous_calibration_is_carried_forward(box):
     _, rig, images = box
     first, block1 = calibrate(rig, lambda f, c: images[f][c], frames=slice(0, 2))
-    second, block2 = calibrate(first, lambda f, c: images[f][c], frames=slice(2, 4))
+    second, block2 = calibrate(first, lambda f, c: images[f][c], frames=slice(2, 4), partial=False)
     assert not block2["accepted"] and block2["rule"] == "min_correspondences"
     assert block2["history"] == block1["history"]  # the accepted window of the first run is kept
     for cam in second.cameras:
         assert np.array_equal(cam.sensor_to_ego, first.camera(cam.name).sensor_to_ego)
+
+
+def test_a_window_that_leaves_a_camera_unlinked_is_calibrated_block_by_block(box):
+    """The black C2 links to nothing: by default the other five cameras are calibrated as one block, placed by
+    their fit to the start, and C2 keeps its starting extrinsics exactly."""
+    rig_true, rig, images = box
+    out, block = calibrate(rig, lambda f, c: images[f][c], frames=slice(2, 4))
+    w = block["windows"][0]
+    assert w["accepted"] and w["partial"] and w["rule"] is None and w["rules_fired"] == []
+    assert w["blocks"] == [["C0", "C1", "C3", "C4", "C5"], ["C2"]] and "C2 not linked to C0" in w["not_linked"]
+    assert block["partial_windows"] == [0] and block["accepted"]
+    status = {(p["a"], p["b"]): p["status"] for p in w["pairs"]}
+    assert status.pop(("C1", "C2")) == status.pop(("C2", "C3")) == "not linked"
+    assert set(status.values()) == {"observed"}
+    assert [p["rotation_sigma_deg"] is None for p in w["pairs"]] == ["C2" in p for p in rig.pairs]
+    assert np.allclose(out.camera("C2").sensor_to_ego, rig.camera("C2").sensor_to_ego, rtol=0, atol=1e-12)
+    rot, trans = errors(out, rig_true)
+    rot0, trans0 = errors(rig, rig_true)
+    inside = [k for k, (a, b) in enumerate(rig.pairs) if "C2" not in (a, b)]
+    assert rot0[inside].min() > 0.5 and rot[inside].max() < 0.15 and trans[inside].max() < 0.03
+    # the block's placement is the least-squares fit to the start, so the start's per-camera errors average out
+    # on the pairs towards C2 instead of being replaced by the reference camera's alone
+    assert rot[[1, 2]].max() < 1.5 * rot0.max()
+    # and the history keeps no 1-sigma for the pairs the images do not determine
+    assert sorted(tuple(r[:2]) for r in block["history"][0]["pair_rotation_sigma_deg"]) == sorted(
+        rig.pairs[k] for k in inside)
 
 
 def test_method_none_and_wo_glc(box):
@@ -250,7 +276,7 @@ def test_auto_phases_redo_a_window_with_a_weak_pair_at_every_view_phase(box, pha
         np.testing.assert_allclose(cam.sensor_to_ego, expected, atol=1e-12)
     assert errors(out, rig_true)[0].max() < 0.15
 
-    _, block = calibrate(rig, load, frames=slice(2, 4), match_config=replace(one, auto_phases=True,
-                                                                             auto_phases_sigma_deg=0.0))
+    _, block = calibrate(rig, load, frames=slice(2, 4), partial=False,
+                         match_config=replace(one, auto_phases=True, auto_phases_sigma_deg=0.0))
     w = block["windows"][0]
     assert not w["accepted"] and w["view_phases"] == [] and w["view_phases_because"] == []

@@ -4,9 +4,13 @@
   An observation pair is two images (camera a at frame t, camera b at frame t'), so beta is applied to
   each image pair's verified inliers (`PairMatches.observed_with`). An adjacent camera pair with at least
   one surviving observation pair is `observed`; one without is `through ring`: its relative pose comes
-  from the other pairs through the loop constraint. The window is rejected (rule `min_correspondences`)
-  only when the observed pairs do not connect every camera of the rig, since then some camera's pose is
-  not constrained at all.
+  from the other pairs through the loop constraint. When the observed pairs do not connect every camera of
+  the rig, some camera's pose against the others is not constrained at all: with partial acceptance (the
+  default, GLC) the window is calibrated block by block (`blocks.py`: each group of cameras the observed
+  pairs link keeps its adjusted relative poses and is placed by its fit to the start; a pair between two
+  blocks is `not linked` and keeps the start's relative pose, up to that fit), and the rules below judge
+  the pairs inside blocks; without it, or when no two cameras are linked, the window is rejected (rule
+  `min_correspondences`).
 * not_converged: the adjustment did not converge within the iteration limit (200).
 * translation_change (alpha): a relative translation that the images measure moved more than alpha from
   the starting extrinsics: a mount does not move by decimetres, so such a move means the adjustment
@@ -48,6 +52,7 @@ import numpy as np
 
 from ..geometry import invert_transform, rotation_angle_deg
 from ..rig import Rig
+from .blocks import linked_blocks
 
 # beta per observation pair. The paper's values (LoFTR correspondences at full resolution):
 BETA_DDAD = 200
@@ -69,7 +74,7 @@ STILL_EGO_M = 0.01
 
 RULES = ("min_correspondences", "not_converged", "translation_change", "weakly_constrained", "non_finite",
          "less_precise")
-OBSERVED, THROUGH_RING = "observed", "through ring"
+OBSERVED, THROUGH_RING, NOT_LINKED = "observed", "through ring", "not linked"
 
 
 @dataclass(frozen=True)
@@ -135,17 +140,8 @@ class Verdict:
 
 def unconstrained_cameras(cameras: Sequence[str], observed: Sequence[tuple[str, str]], reference: str) -> list[str]:
     """Cameras that no chain of observed pairs links to the reference camera."""
-    nbrs: dict[str, set[str]] = {c: set() for c in cameras}
-    for a, b in observed:
-        nbrs.setdefault(a, set()).add(b)
-        nbrs.setdefault(b, set()).add(a)
-    seen, stack = {reference}, [reference]
-    while stack:
-        for n in nbrs.get(stack.pop(), ()):
-            if n not in seen:
-                seen.add(n)
-                stack.append(n)
-    return [c for c in cameras if c not in seen]
+    linked = next(b for b in linked_blocks([reference, *cameras], observed) if reference in b)
+    return [c for c in cameras if c not in linked]
 
 
 def check_correspondences(counts: Mapping[tuple[str, str], int], rules: AcceptanceRules,

@@ -37,6 +37,7 @@ from ..rig import Frame, Rig
 from ..rigfile import intrinsics_from_dict
 from ..stereo.rectify import torch_threads
 from .acceptance import (
+    NOT_LINKED,
     OBSERVED,
     STILL_EGO_M,
     THROUGH_RING,
@@ -52,6 +53,7 @@ from .acceptance import (
     translation_changes,
 )
 from .ba import AdjustConfig
+from .blocks import between_blocks, linked_blocks, place_blocks
 from .correspondences import (
     MATCHERS,
     VIEW_PHASES,
@@ -142,8 +144,9 @@ def _windows(frames: tuple[Frame, ...], size: int) -> list[tuple[Frame, ...]]:
 
 
 def _pair_rows(matches: list[PairMatches], used: list[PairMatches], result: MethodResult | None,
-               moved: Mapping[tuple[str, str], float], beta: int) -> list[dict]:
+               moved: Mapping[tuple[str, str], float], beta: int, blocks: Sequence[Sequence[str]] = ()) -> list[dict]:
     rows = []
+    between = set(between_blocks([(pm.cam_a, pm.cam_b) for pm in matches], blocks)) if blocks else set()
     for pm, pu in zip(matches, used):
         key = (pm.cam_a, pm.cam_b)
         in_ba = result is not None and key in result.pair_rms_px
@@ -151,7 +154,7 @@ def _pair_rows(matches: list[PairMatches], used: list[PairMatches], result: Meth
         rows.append({
             "a": pm.cam_a,
             "b": pm.cam_b,
-            "status": OBSERVED if pu.view_pairs > 0 else THROUGH_RING,
+            "status": OBSERVED if pu.view_pairs > 0 else NOT_LINKED if key in between else THROUGH_RING,
             "tentative": int(pm.tentative),
             "after_gate": int(pm.gated),
             "inliers": int(pm.inliers),
@@ -196,7 +199,9 @@ def calibrate(
     timings, show_progress, match_cache (a dict shared between calls on the same images, e.g. to compare
     methods: features and matches are reused when window, matcher settings (same-camera links aside) and
     starting extrinsics agree), fuse_windows (default True: an accepted window that agrees with the calibration
-    in effect is averaged with it, `fuse_calibrations`, instead of replacing it).
+    in effect is averaged with it, `fuse_calibrations`, instead of replacing it), partial (default True: with GLC, a
+    window whose observed pairs do not link every camera is calibrated block by block, each block placed by its fit
+    to the start, `blocks.place_blocks`; False rejects it, rule min_correspondences).
     """
     with torch_threads(1):
         setup = _setup(rig, images, method, frames, matcher, **options)
@@ -222,6 +227,7 @@ class Setup:
     match_cache: dict | None
     pairs: list[tuple[str, str]]
     fuse_windows: bool = True
+    partial: bool = True
 
 
 def _check_match_config(cfg: MatchConfig) -> None:
@@ -249,6 +255,7 @@ def _setup(
     show_progress: bool | None = None,
     match_cache: dict | None = None,
     fuse_windows: bool = True,
+    partial: bool = True,
 ) -> Setup:
     """Check the options (InputError for bad ones) and fill in the defaults."""
     if method not in METHODS:
@@ -278,7 +285,7 @@ def _setup(
         acfg = replace(acfg, refine_focal=False)
     masks = {c: m for c in rig.camera_names if (m := rig.load_mask(c)) is not None}
     return Setup(method, matcher, tuple(selected), window, rules, mcfg, acfg, ref, images or rig.load_image, masks,
-                 timings or Timings(), show_progress, match_cache, list(rig.pairs), bool(fuse_windows))
+                 timings or Timings(), show_progress, match_cache, list(rig.pairs), bool(fuse_windows), bool(partial))
 
 
 @dataclass
@@ -356,6 +363,8 @@ class Judged:
     links_for: list[str] = field(default_factory=list)  # why the window was redone with every same-camera link
     phases: list[dict] = field(default_factory=list)  # with more than one view phase: each run's outcome
     phases_for: list[str] = field(default_factory=list)  # why the window was redone at every view phase
+    blocks: list[tuple[str, ...]] = field(default_factory=list)  # a partially linked window's blocks, else []
+    not_linked: str | None = None  # why not every camera is linked (min_correspondences' reason)
 
 
 def _judge(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
@@ -394,20 +403,35 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
         phases = phases + tuple(p for p in VIEW_PHASES if p != phases[0])[: len(VIEW_PHASES) - 1]
     runs += [_judge(rig, replace(setup, match=replace(setup.match, view_phase=p)), cams, win, ego, start)
              for p in phases[1:]]
-    ok = [r for r in runs if r.verdict.accepted and r.result is not None]
-    rows = [{"phase": list(p), "accepted": r.verdict.accepted, "rule": r.verdict.rule} for p, r in zip(phases, runs)]
+    ok = _same_blocks([r for r in runs if r.verdict.accepted and r.result is not None])
+    rows = [{"phase": list(p), "accepted": r.verdict.accepted, "rule": r.verdict.rule,
+             "blocks": [list(b) for b in r.blocks]} for p, r in zip(phases, runs)]
     if 2 * len(ok) <= len(runs):
-        first = next(r for r in runs if not r.verdict.accepted)
-        reason = f"{len(ok)} of {len(runs)} view phases accepted; the first rejected: {first.verdict.reason}"
+        first = next((r for r in runs if not r.verdict.accepted), None)
+        if first is None:  # every run accepted, but the observed pairs linked the cameras differently
+            first = replace(runs[0], verdict=Verdict(False, "min_correspondences", "the runs link the cameras into "
+                                                     "different blocks, so no camera set is linked by most of them"))
+        reason = (f"{len(ok)} of {len(runs)} view phases accepted with the same cameras linked; the first rejected: "
+                  f"{first.verdict.reason}")
         return replace(first, verdict=replace(first.verdict, reason=reason), phases=rows, phases_for=why)
     result = _mean_result([r.result for r in ok])
     centre = {**start, **result.sensor_to_ego}
-    for row, r in zip(rows, runs):  # how far each accepted run's adjacent relative rotations are from the mean's
-        if row["accepted"] and r.result is not None:
+    for row, r in zip(rows, runs):  # how far each averaged run's adjacent relative rotations are from the mean's
+        if any(r is o for o in ok):
             after = {**start, **r.result.sensor_to_ego}
             turned = rotation_changes(centre, after, setup.pairs)
             row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(v, 5) for (a, b), v in turned.items()}
     return replace(ok[0], result=result, phases=rows, phases_for=why)
+
+
+def _same_blocks(runs: list[Judged]) -> list[Judged]:
+    """The accepted runs to average: those linked into the blocks most of them have (the first run's on a tie); runs
+    linked otherwise place their cameras differently and are left out."""
+    keys = [tuple(r.blocks) for r in runs]
+    if not keys:
+        return []
+    best = max(dict.fromkeys(keys), key=keys.count)
+    return [r for r, k in zip(runs, keys) if k == best]
 
 
 def _weak_pairs(setup: Setup, judged: Judged) -> list[str]:
@@ -444,19 +468,41 @@ def _weak_unseen_pairs(setup: Setup, judged: Judged, n_frames: int) -> list[str]
 
 def _judge_matches(setup: Setup, cams: list[Camera], win: tuple[Frame, ...], ego: np.ndarray,
                    start: dict[str, np.ndarray]) -> Judged:
-    """One round of `_judge`: match, beta, ring check, adjustment, result check."""
+    """One round of `_judge`: match, beta, ring check (a window whose observed pairs do not link every camera is
+    calibrated block by block, `_partial_blocks`), adjustment, result check."""
     matches = _match_window(setup, cams, win, ego, start)
     used = [pm.observed_with(setup.rules.min_correspondences) for pm in matches]
+    observed = [(u.cam_a, u.cam_b) for u in used if u.view_pairs > 0]
     verdict = check_correspondences({(u.cam_a, u.cam_b): u.view_pairs for u in used}, setup.rules, setup.reference)
-    if not verdict.accepted:
+    blocks = [] if verdict.accepted else _partial_blocks(setup, cams, observed)
+    not_linked = None if verdict.accepted else verdict.reason
+    if not verdict.accepted and not blocks:
         return Judged(verdict, None, matches, used)
     t0 = time.perf_counter()
     result = run_method(setup.method, cams, setup.pairs, used, ego, setup.reference, setup.adjust)
     setup.timings.add("adjustment", t0)
-    observed = [(u.cam_a, u.cam_b) for u in used if u.view_pairs > 0]
+    if blocks:
+        result = _placed(result, start, blocks)
     verdict = check_result(result.converged, result.iterations, start, {**start, **result.sensor_to_ego}, observed,
                            setup.rules, result.pair_rotation_sigma_deg)
-    return Judged(verdict, result, matches, used)
+    return Judged(verdict, result, matches, used, blocks=blocks, not_linked=not_linked)
+
+
+def _partial_blocks(setup: Setup, cams: list[Camera], observed: list[tuple[str, str]]) -> list[tuple[str, ...]]:
+    """The blocks a window that does not link every camera is calibrated in (`Setup.partial`, GLC only), or [] when
+    it is not (partial acceptance off, or no block of two cameras or more)."""
+    if not setup.partial or setup.method != "glc":
+        return []
+    blocks = linked_blocks([c.name for c in cams], observed)
+    return blocks if any(len(b) > 1 for b in blocks) else []
+
+
+def _placed(result: MethodResult, start: Mapping[str, np.ndarray], blocks: list[tuple[str, ...]]) -> MethodResult:
+    """A partially linked window's result with every block placed by its fit to the start (`place_blocks`) and no
+    1-sigma for the pairs between blocks, which the images do not determine."""
+    between = set(between_blocks(list(result.pair_rotation_sigma_deg), blocks))
+    return replace(result, sensor_to_ego=place_blocks(result.sensor_to_ego, start, blocks),
+                   pair_rotation_sigma_deg={p: s for p, s in result.pair_rotation_sigma_deg.items() if p not in between})
 
 
 def _focal_rows(start: Mapping[str, CameraModel], result: MethodResult | None) -> list[dict]:
@@ -542,8 +588,10 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "view_phases_because": j.phases_for,
         "ego_travel_m": travel,
         "fused_weights": None if fused is None else {"in_effect": fused.weights[0], "window": fused.weights[1]},
-        "pairs": _pair_rows(j.matches, j.used, j.result, moved,
-                            setup.rules.min_correspondences),
+        "partial": bool(j.blocks),
+        "blocks": [list(b) for b in j.blocks],
+        "not_linked": j.not_linked if j.blocks else None,
+        "pairs": _pair_rows(j.matches, j.used, j.result, moved, setup.rules.min_correspondences, j.blocks),
         "iterations": int(res.iterations),
         "converged": bool(res.converged),
         "message": res.message,
@@ -610,6 +658,7 @@ def _block(setup: Setup, reports: list[dict], history: list[dict]) -> dict:
         "rule": None if accepted_any or first_rejected is None else first_rejected["rule"],
         "reason": None if accepted_any or first_rejected is None else first_rejected["reason"],
         "rules_fired": [{"window": w["index"], **f} for w in reports for f in w["rules_fired"]],
+        "partial_windows": [w["index"] for w in reports if w["accepted"] and w["partial"]],
         "windows": reports,
         "history": history,
         "seconds": {s: round(v, 3) for s, v in setup.timings.seconds.items()},

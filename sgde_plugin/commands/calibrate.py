@@ -67,6 +67,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fuse-windows", action=argparse.BooleanOptionalAction, default=True,
                         help="average an accepted window that agrees with the calibration in effect (within 3 "
                              "combined 1-sigmas) with it, weighted by precision, instead of replacing it (default on)")
+    parser.add_argument("--partial", action=argparse.BooleanOptionalAction, default=True,
+                        help="calibrate a window whose observed pairs do not link every camera block by block, each "
+                             "block placed by its fit to the starting extrinsics (default on; --no-partial rejects "
+                             "it, rule min_correspondences)")
     parser.add_argument("--json", default=None, metavar="REPORT", help="also write the calibration block here")
     parser.add_argument("--strict", action="store_true",
                         help="exit with code 3 when no window is accepted (default: exit 0, one line on stderr)")
@@ -102,7 +106,7 @@ def summary_rows(block: dict) -> list[dict]:
                 "adjusted": p.get("adjusted_correspondences"),
                 "rms_px": p.get("rms_px"),
                 "accepted": w["accepted"],
-                "rule": w["rule"] or "-",
+                "rule": w["rule"] or ("partial" if w.get("partial") else "-"),
             })
     return rows
 
@@ -129,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     mcfg = MatchConfig(**refine, **LINK_MODES[args.links], **PHASE_MODES[args.view_phases])
     out_rig, block = calibrate(rig, method=args.method, frames=frames, matcher=args.matcher, window=args.window,
                                loftr_weights=args.loftr_weights, rules=rules, adjust_config=acfg, match_config=mcfg,
-                               fuse_windows=args.fuse_windows)
+                               fuse_windows=args.fuse_windows, partial=args.partial)
     write_rig_json(out_rig, args.out)
     if args.json:
         atomic_write_text(Path(args.json), json.dumps(block, indent=1) + "\n")
@@ -137,9 +141,9 @@ def run(args: argparse.Namespace) -> int:
     _print_focal(block)
     n_ok = sum(w["accepted"] for w in block["windows"])
     print(f"{args.method}: {n_ok}/{len(block['windows'])} windows accepted; wrote {args.out}")
-    line = rejection_line(block)
-    if line:
-        print(line, file=sys.stderr)
+    for line in (partial_line(block), rejection_line(block)):
+        if line:
+            print(line, file=sys.stderr)
     return STRICT_EXIT if args.strict and n_ok == 0 else 0
 
 
@@ -165,6 +169,18 @@ def _print_focal(block: dict) -> None:
             print(f"window {w['index']} focal length estimate (%, 1-sigma; * adopted): " + ", ".join(
                 f"{f['camera']} {f['estimate_pct']:+.3f} ({f['sigma_pct'] or float('nan'):.3f})"
                 f"{'*' if f['adopted'] else ''}" for f in w["focal"]))
+
+
+def partial_line(block: dict) -> str | None:
+    """One line for stderr about windows accepted block by block (None when there is none)."""
+    partial = [w for w in block["windows"] if w["accepted"] and w.get("partial")]
+    if not partial:
+        return None
+    w = partial[0]
+    blocks = " | ".join(", ".join(b) for b in w["blocks"])
+    return (f"calibrate: {len(partial)} window(s) calibrated block by block; first: window {w['index']} (frames "
+            f"{w['frames'][0]}..{w['frames'][-1]}): {w['not_linked']}; blocks {blocks}, each placed by its fit to the "
+            f"starting extrinsics (pairs between blocks keep them)")
 
 
 def rejection_line(block: dict) -> str | None:

@@ -1,0 +1,62 @@
+"""Blocks of a partially linked window and their placement (calib/blocks.py; runtime < 1 s)."""
+
+import numpy as np
+
+from sgde_plugin.calib.acceptance import unconstrained_cameras
+from sgde_plugin.calib.blocks import between_blocks, fit_block, linked_blocks, place_blocks
+from sgde_plugin.geometry import invert_transform, make_transform, rodrigues, rotation_angle_deg
+
+
+def _pose(rng, spread_m=1.5):
+    return make_transform(rodrigues(rng.normal(size=3)), rng.normal(scale=spread_m, size=3))
+
+
+def test_linked_blocks_and_the_pairs_between_them():
+    cams = ["A", "B", "C", "D", "E", "F"]
+    ring = [("A", "B"), ("B", "C"), ("C", "D"), ("D", "E"), ("E", "F"), ("F", "A")]
+    assert linked_blocks(cams, ring) == [tuple(cams)]
+    observed = [("A", "B"), ("D", "E"), ("F", "A")]
+    blocks = linked_blocks(cams, observed)
+    assert blocks == [("A", "B", "F"), ("C",), ("D", "E")]
+    assert between_blocks(ring, blocks) == [("B", "C"), ("C", "D"), ("E", "F")]
+    assert between_blocks(ring, [tuple(cams)]) == []
+    assert unconstrained_cameras(cams, observed, "A") == ["C", "D", "E"]
+    assert unconstrained_cameras(cams, observed, "D") == ["A", "B", "C", "F"]
+    assert linked_blocks(["A", "B"], []) == [("A",), ("B",)]
+
+
+def test_a_block_moved_rigidly_is_put_back_and_keeps_its_relative_poses():
+    rng = np.random.default_rng(3)
+    start = {n: _pose(rng) for n in "ABCD"}
+    C = make_transform(rodrigues(np.radians([0.8, -1.5, 0.6])), np.array([0.07, -0.03, 0.05]))
+    moved = {n: C @ start[n] for n in "ABCD"}
+    assert np.allclose(fit_block(moved, start, "ABC"), invert_transform(C), atol=1e-12)
+    placed = place_blocks(moved, start, [("A", "B", "C"), ("D",)])
+    for n in "ABCD":
+        assert np.allclose(placed[n], start[n], atol=1e-12)
+
+
+def test_the_fit_averages_independent_start_errors_and_keeps_the_block_rigid():
+    rng = np.random.default_rng(4)
+    truth = {n: _pose(rng) for n in "ABCDEF"}
+    # the start: every camera off by its own 1 deg / 5 cm; the adjusted block: exact relative poses, anywhere
+    start = {n: make_transform(rodrigues(rng.normal(size=3) * np.radians(1.0) / np.sqrt(3)),
+                               rng.normal(scale=0.05 / np.sqrt(3), size=3)) @ T for n, T in truth.items()}
+    anywhere = make_transform(rodrigues(np.array([0.3, 0.2, -0.4])), np.array([2.0, -1.0, 0.5]))
+    adjusted = {n: anywhere @ T for n, T in truth.items()}
+    placed = place_blocks(adjusted, start, [tuple("ABCDEF")])
+    for a in "ABCDEF":
+        for b in "ABCDEF":
+            rel = invert_transform(placed[a]) @ placed[b]
+            assert np.allclose(rel, invert_transform(truth[a]) @ truth[b], atol=1e-9)
+    # placed by the fit: its offset from the truth is the mean of six independent errors, so well under one
+    off_deg = rotation_angle_deg((placed["A"] @ invert_transform(truth["A"]))[:3, :3])
+    each_deg = [rotation_angle_deg((start[n] @ invert_transform(truth[n]))[:3, :3]) for n in "ABCDEF"]
+    assert off_deg < 0.75 * float(np.mean(each_deg))
+    # exactly the least-squares placement: a small turn or shift of the placed block raises the misfit
+    def misfit(P):
+        return sum(np.sum((P[n][:3, 3] - start[n][:3, 3]) ** 2) for n in P)
+    base = misfit(placed)
+    for d in np.eye(3) * 1e-3:
+        for nudge in (make_transform(np.eye(3), d), make_transform(np.eye(3), -d)):
+            assert misfit({n: nudge @ T for n, T in placed.items()}) > base
