@@ -334,3 +334,14 @@ def test_inverse_cholesky_of_3x3_blocks():
     np.testing.assert_allclose(L_inv, np.linalg.inv(np.linalg.cholesky(H)), rtol=1e-9, atol=1e-12)
     inv = np.swapaxes(L_inv, 1, 2) @ L_inv
     np.testing.assert_allclose(inv @ H, np.broadcast_to(np.eye(3), H.shape), atol=1e-8)
+
+
+def test_an_adjustment_without_observations_keeps_the_start(scene):
+    """No observation to adjust (a partially linked window whose few matches all disagree with their tracks): the
+    start comes back, not converged, so the window is rejected instead of failing."""
+    cams, f, pairs, ego, S_true, S0 = scene
+    obs, _, _ = simulate_observations(cams, pairs, ego, per_view_pair=2, noise_px=0.3, rng=np.random.default_rng(6))
+    none = Observations(obs.camera[:0], obs.frame[:0], obs.point[:0], obs.ray[:0], np.zeros(0))
+    res, kept = robust_adjust(S0, ego, none, np.full(len(cams), f))
+    assert kept.size == 0 and not res.converged and res.iterations == 0 and res.message == "no observation to adjust"
+    assert np.array_equal(res.sensor_to_ego, S0) and res.rotation_cov is None

@@ -116,7 +116,8 @@ def _accuracy_row(preset: str, seed: int, capture: str, peer: str | None, glc: b
         out, block = calibrate(rig, lambda f, c: seq.images[f][c], show_progress=False, window=frames,
                                match_config=match_config)
         w = block["windows"][0]
-        row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "seconds": time.perf_counter() - t0,
+        row[f"glc_{start}"] = {"accepted": w["accepted"], "rule": w["rule"], "partial": w["partial"],
+                               "blocks": w["blocks"], "seconds": time.perf_counter() - t0,
                                "through_ring": [f"{p['a']}-{p['b']}" for p in w["pairs"]
                                                 if p["status"] == "through ring"],
                                "same_camera_links": w["same_camera_links"], "links_because": w["links_because"],

@@ -760,6 +760,11 @@ def _robust_passes(sensor_to_ego, ego_to_world, obs, focal, reference, cfg, sch,
     _, _, agree = initial_points(sensor_to_ego, ego_to_world, obs, n_points, cfg.consensus_deg)
     obs, mask, _ = select_observations(obs, agree)
     kept_idx = np.flatnonzero(mask)
+    if len(obs) == 0:  # nothing to adjust (every match disagreed with its track): the start, not converged
+        start = np.array(sensor_to_ego, dtype=np.float64)
+        res = AdjustResult(start, np.zeros((0, 3)), np.zeros((0, 2)), 0, False, "no observation to adjust", 0.0, 0.0,
+                           focal_scale=None if focal_maps is None else np.ones(len(start)))
+        return res, np.zeros(n_input, dtype=bool), obs
     plain = Observations(obs.camera, obs.frame, obs.point, obs.ray)
     res, used = None, 0
     for scale in sch.coarse_scales_px:  # graduated non-convexity: a wide basin first, then sharper
