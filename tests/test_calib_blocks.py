@@ -2,8 +2,9 @@
 
 import numpy as np
 
-from sgde_plugin.calib.acceptance import unconstrained_cameras
+from sgde_plugin.calib.acceptance import Verdict, unconstrained_cameras
 from sgde_plugin.calib.blocks import between_blocks, fit_block, linked_blocks, place_blocks
+from sgde_plugin.calib.pipeline import Judged, _phases_rejected, _same_blocks
 from sgde_plugin.geometry import invert_transform, make_transform, rodrigues, rotation_angle_deg
 
 
@@ -60,3 +61,20 @@ def test_the_fit_averages_independent_start_errors_and_keeps_the_block_rigid():
     for d in np.eye(3) * 1e-3:
         for nudge in (make_transform(np.eye(3), d), make_transform(np.eye(3), -d)):
             assert misfit({n: nudge @ T for n, T in placed.items()}) > base
+
+
+def test_view_phase_runs_are_averaged_only_with_runs_linked_alike():
+    def run(blocks, rule=None):
+        return Judged(Verdict(True) if rule is None else Verdict(False, rule, "why"), None, [], [], blocks=blocks)
+
+    split = [("A", "B"), ("C",)]
+    whole, a, b = run([]), run(split), run(split)
+    assert _same_blocks([whole, a, b]) == [a, b]
+    assert _same_blocks([whole, a]) == [whole]  # a tie: the first run's linking
+    assert _same_blocks([]) == []
+    # four runs, two linked whole and two split: no linking is shared by more than half
+    rejected = _phases_rejected([whole, run([]), a, b], 2)
+    assert rejected.verdict.rule == "min_correspondences" and "different blocks" in rejected.verdict.reason
+    assert rejected.verdict.reason.startswith("2 of 4 view phases accepted with the same cameras linked")
+    rejected = _phases_rejected([whole, run([], "weakly_constrained"), a, b], 2)
+    assert rejected.verdict.rule == "weakly_constrained" and rejected.verdict.reason.endswith("first rejected: why")

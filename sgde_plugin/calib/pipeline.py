@@ -407,13 +407,7 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
     rows = [{"phase": list(p), "accepted": r.verdict.accepted, "rule": r.verdict.rule,
              "blocks": [list(b) for b in r.blocks]} for p, r in zip(phases, runs)]
     if 2 * len(ok) <= len(runs):
-        first = next((r for r in runs if not r.verdict.accepted), None)
-        if first is None:  # every run accepted, but the observed pairs linked the cameras differently
-            first = replace(runs[0], verdict=Verdict(False, "min_correspondences", "the runs link the cameras into "
-                                                     "different blocks, so no camera set is linked by most of them"))
-        reason = (f"{len(ok)} of {len(runs)} view phases accepted with the same cameras linked; the first rejected: "
-                  f"{first.verdict.reason}")
-        return replace(first, verdict=replace(first.verdict, reason=reason), phases=rows, phases_for=why)
+        return replace(_phases_rejected(runs, len(ok)), phases=rows, phases_for=why)
     result = _mean_result([r.result for r in ok])
     centre = {**start, **result.sensor_to_ego}
     for row, r in zip(rows, runs):  # how far each averaged run's adjacent relative rotations are from the mean's
@@ -422,6 +416,18 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
             turned = rotation_changes(centre, after, setup.pairs)
             row["pair_rotation_from_mean_deg"] = {f"{a}-{b}": round(v, 5) for (a, b), v in turned.items()}
     return replace(ok[0], result=result, phases=rows, phases_for=why)
+
+
+def _phases_rejected(runs: list[Judged], n_ok: int) -> Judged:
+    """The first rejected run of a window whose view phases did not agree (`n_ok` runs accepted with the same cameras
+    linked), its reason saying so; when every run was accepted but linked differently, a `min_correspondences` one."""
+    first = next((r for r in runs if not r.verdict.accepted), None)
+    if first is None:
+        first = replace(runs[0], verdict=Verdict(False, "min_correspondences", "the runs link the cameras into "
+                                                 "different blocks, so no camera set is linked by most of them"))
+    reason = (f"{n_ok} of {len(runs)} view phases accepted with the same cameras linked; the first rejected: "
+              f"{first.verdict.reason}")
+    return replace(first, verdict=replace(first.verdict, reason=reason))
 
 
 def _same_blocks(runs: list[Judged]) -> list[Judged]:
@@ -500,9 +506,10 @@ def _partial_blocks(setup: Setup, cams: list[Camera], observed: list[tuple[str, 
 def _placed(result: MethodResult, start: Mapping[str, np.ndarray], blocks: list[tuple[str, ...]]) -> MethodResult:
     """A partially linked window's result with every block placed by its fit to the start (`place_blocks`) and no
     1-sigma for the pairs between blocks, which the images do not determine."""
-    between = set(between_blocks(list(result.pair_rotation_sigma_deg), blocks))
+    sigma = result.pair_rotation_sigma_deg
+    between = set(between_blocks(list(sigma), blocks))
     return replace(result, sensor_to_ego=place_blocks(result.sensor_to_ego, start, blocks),
-                   pair_rotation_sigma_deg={p: s for p, s in result.pair_rotation_sigma_deg.items() if p not in between})
+                   pair_rotation_sigma_deg={p: s for p, s in sigma.items() if p not in between})
 
 
 def _focal_rows(start: Mapping[str, CameraModel], result: MethodResult | None) -> list[dict]:
