@@ -1,10 +1,13 @@
 """Blocks of a partially linked window and their placement (calib/blocks.py; runtime < 1 s)."""
 
+from dataclasses import replace
+
 import numpy as np
 
 from sgde_plugin.calib.acceptance import Verdict, unconstrained_cameras
 from sgde_plugin.calib.blocks import between_blocks, fit_block, linked_blocks, place_blocks
-from sgde_plugin.calib.pipeline import Judged, _phases_rejected, _same_blocks
+from sgde_plugin.calib.methods import MethodResult
+from sgde_plugin.calib.pipeline import Judged, _common_blocks, _phases_rejected, _same_blocks
 from sgde_plugin.geometry import invert_transform, make_transform, rodrigues, rotation_angle_deg
 
 
@@ -78,3 +81,24 @@ def test_view_phase_runs_are_averaged_only_with_runs_linked_alike():
     assert rejected.verdict.reason.startswith("2 of 4 view phases accepted with the same cameras linked")
     rejected = _phases_rejected([whole, run([], "weakly_constrained"), a, b], 2)
     assert rejected.verdict.rule == "weakly_constrained" and rejected.verdict.reason.endswith("first rejected: why")
+
+
+def test_runs_linked_differently_are_averaged_on_the_blocks_they_all_share():
+    rng = np.random.default_rng(5)
+    start = {n: _pose(rng) for n in "ABCD"}
+    turn = make_transform(rodrigues(np.radians([0.5, 1.0, -0.7])), np.array([0.02, 0.05, -0.03]))
+    # run 1 links everything and moves D; run 2 leaves D alone (placed at its start); A, B, C agree
+    one = {**start, "D": turn @ start["D"]}
+    sigma = {("A", "B"): 0.01, ("B", "C"): 0.01, ("C", "D"): 0.01, ("D", "A"): 0.01}
+    runs = [Judged(Verdict(True), MethodResult(one, pair_rotation_sigma_deg=sigma), [], [], blocks=[]),
+            Judged(Verdict(True), MethodResult(dict(start), pair_rotation_sigma_deg=sigma), [], [],
+                   blocks=[("A", "B", "C"), ("D",)], not_linked="camera(s) D not linked to A")]
+    common = _common_blocks(runs, start)
+    assert [r.blocks for r in common] == [[("A", "B", "C"), ("D",)]] * 2
+    for r in common:
+        assert np.allclose(r.result.sensor_to_ego["D"], start["D"], atol=1e-12)
+        assert set(r.result.pair_rotation_sigma_deg) == {("A", "B"), ("B", "C")}
+        assert r.not_linked.startswith("camera(s) D not linked to A; the view phases link the cameras differently")
+    # runs that share no two linked cameras give nothing to average
+    apart = [replace(runs[1], blocks=[("A", "B"), ("C",), ("D",)]), replace(runs[1], blocks=[("A",), ("B", "C", "D")])]
+    assert _common_blocks(apart, start) == []

@@ -403,7 +403,10 @@ def _judge_phases(rig: Rig, setup: Setup, cams: list[Camera], win: tuple[Frame, 
         phases = phases + tuple(p for p in VIEW_PHASES if p != phases[0])[: len(VIEW_PHASES) - 1]
     runs += [_judge(rig, replace(setup, match=replace(setup.match, view_phase=p)), cams, win, ego, start)
              for p in phases[1:]]
-    ok = _same_blocks([r for r in runs if r.verdict.accepted and r.result is not None])
+    accepted = [r for r in runs if r.verdict.accepted and r.result is not None]
+    ok = _same_blocks(accepted)
+    if 2 * len(ok) <= len(runs) < 2 * len(accepted):  # most runs accepted, linked differently
+        ok = _common_blocks(accepted, start)
     rows = [{"phase": list(p), "accepted": r.verdict.accepted, "rule": r.verdict.rule,
              "blocks": [list(b) for b in r.blocks]} for p, r in zip(phases, runs)]
     if 2 * len(ok) <= len(runs):
@@ -428,6 +431,21 @@ def _phases_rejected(runs: list[Judged], n_ok: int) -> Judged:
     reason = (f"{n_ok} of {len(runs)} view phases accepted with the same cameras linked; the first rejected: "
               f"{first.verdict.reason}")
     return replace(first, verdict=replace(first.verdict, reason=reason))
+
+
+def _common_blocks(runs: list[Judged], start: Mapping[str, np.ndarray]) -> list[Judged]:
+    """Accepted runs that link the cameras into different blocks, each re-placed on the blocks all of them share
+    (two cameras stay together only where every run links them; `_placed`), so that they can be averaged; [] when
+    those blocks link no two cameras."""
+    names = list(runs[0].result.sensor_to_ego)
+    label = {n: tuple(next((k for k, b in enumerate(r.blocks) if n in b), -1) for r in runs) for n in names}
+    common = [tuple(n for n in names if label[n] == key) for key in dict.fromkeys(label.values())]
+    if all(len(b) == 1 for b in common):
+        return []
+    why = next((r.not_linked for r in runs if r.not_linked), None)
+    return [replace(r, result=_placed(r.result, start, common), blocks=common,
+                    not_linked=f"{why}; the view phases link the cameras differently, so only the cameras that every "
+                               f"run links stay together") for r in runs]
 
 
 def _same_blocks(runs: list[Judged]) -> list[Judged]:
