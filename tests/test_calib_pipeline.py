@@ -94,6 +94,17 @@ def test_a_window_that_leaves_a_camera_unlinked_is_calibrated_block_by_block(box
     # and the history keeps no 1-sigma for the pairs the images do not determine
     assert sorted(tuple(r[:2]) for r in block["history"][0]["pair_rotation_sigma_deg"]) == sorted(
         rig.pairs[k] for k in inside)
+    # after a window that linked every camera, the split one leaves C2 where that window put it
+    out2, block2 = calibrate(rig, lambda f, c: images[f][c], window=2)
+    w1 = block2["windows"][1]
+    assert [w["partial"] for w in block2["windows"]] == [False, True] and w1["blocks"][1] == ["C2"]
+    assert w1["rule"] in (None, "less_precise")  # here less precise (two frames, a camera fewer): window 0 stays
+    c2 = np.array(block2["history"][0]["sensor_to_ego"]["C2"])
+    assert np.allclose(out2.camera("C2").sensor_to_ego, c2, rtol=0, atol=1e-9)
+    assert errors(out2, rig_true)[0].max() < 0.15
+    # only GLC calibrates block by block: the chained methods reject the window as before
+    _, chained = calibrate(rig, lambda f, c: images[f][c], frames=slice(2, 4), method="wo-glc")
+    assert chained["windows"][0]["rule"] == "min_correspondences" and not chained["windows"][0]["partial"]
 
 
 def test_method_none_and_wo_glc(box):
