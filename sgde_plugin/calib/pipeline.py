@@ -17,6 +17,9 @@ and determines the rig markedly worse (a car that creeps), or was taken standing
 precise is averaged with it (`fuse_calibrations`, weights 1 / sigma^2; its entry says `fused_with_previous`, its
 report `fused_weights`); one that disagrees beyond that is a change of the mount and replaces it. Each window's
 report gives how far the ego travelled over it (`ego_travel_m`).
+With GLC, a window whose observed pairs do not link every camera is calibrated block by block (`partial`, default on;
+`blocks.place_blocks`): its report says `partial`, its `blocks` and why (`not_linked`), the pairs between blocks are
+`not linked`, and the block lists such windows in `partial_windows`.
 The block's top-level `accepted` is true when at least one window of this run was accepted; each
 entry of `windows` has its own verdict, the rule that fired and a one-line reason.
 """
