@@ -26,18 +26,19 @@ def linked_blocks(cameras: Sequence[str], observed: Sequence[tuple[str, str]]) -
         nbrs.setdefault(a, set()).add(b)
         nbrs.setdefault(b, set()).add(a)
     order = list(dict.fromkeys([*cameras, *nbrs]))
-    block_of: dict[str, int] = {}
+    blocks: list[tuple[str, ...]] = []
+    seen: set[str] = set()
     for c in order:
-        if c in block_of:
+        if c in seen:
             continue
-        k, stack = len(set(block_of.values())), [c]
-        block_of[c] = k
+        block, stack = {c}, [c]
         while stack:
-            for n in nbrs[stack.pop()]:
-                if n not in block_of:
-                    block_of[n] = k
-                    stack.append(n)
-    return [tuple(c for c in order if block_of[c] == k) for k in sorted(set(block_of.values()))]
+            for n in nbrs[stack.pop()] - block:
+                block.add(n)
+                stack.append(n)
+        seen |= block
+        blocks.append(tuple(n for n in order if n in block))
+    return blocks
 
 
 def between_blocks(pairs: Sequence[tuple[str, str]], blocks: Sequence[Sequence[str]]) -> list[tuple[str, str]]:
