@@ -26,10 +26,11 @@ def test_check_precision_keeps_the_more_precise_calibration_unless_the_mount_mov
     # B-C: 0.4 deg turned against a combined 1-sigma of hypot(0.5, 0.05) = 0.502 deg: 0.8 sigma
     assert not v.accepted and v.rule == "less_precise"
     assert "B-C 1-sigma 0.500 deg against 0.050 deg" in v.reason and "within 0.8 combined" in v.reason
-    # 2.0 deg on B-C is 3.98 combined sigmas: the mount moved, the window is adopted
-    assert check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 2.0}, rules).accepted
+    # 3.5 deg on B-C is 6.97 combined sigmas: the mount moved, the window is adopted; 2.0 deg (3.98) is not enough
+    assert check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 3.5}, rules).accepted
+    assert check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 2.0}, rules).rule == "less_precise"
     # ... unless the car stood still: such a window's sigmas do not bound its error
-    still = check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 2.0}, rules, still=True)
+    still = check_precision(before, worse, {("A", "B"): 0.2, ("B", "C"): 3.5}, rules, still=True)
     assert still.rule == "less_precise" and still.reason.startswith("was taken while the car stood still")
     # 1.8x less precise is within the ratio of 2
     assert check_precision(before, {("A", "B"): 0.05, ("B", "C"): 0.09}, {}, rules).accepted
@@ -122,6 +123,7 @@ def test_a_second_driven_window_is_averaged_with_the_first():
     alone, block_alone = calibrate(rig, lambda f, c: images[f][c], window=2, match_cache=cache, fuse_windows=False)
     w0, w1 = block["windows"]
     assert w0["accepted"] and w1["accepted"] and w0["fused_weights"] is None
+    assert 0.0 <= w1["disagreement_sigmas"] <= AcceptanceRules().consistent_sigmas
     weights = w1["fused_weights"]
     assert weights["in_effect"] + weights["window"] == pytest.approx(1.0) and min(weights.values()) > 0.2
     assert block["history"][1]["fused_with_previous"] and "fused_with_previous" not in block["history"][0]
@@ -135,3 +137,22 @@ def test_a_second_driven_window_is_averaged_with_the_first():
     # the fused sigmas are smaller than either window's
     s1 = {(a, b): s for a, b, s in block_alone["history"][1]["pair_rotation_sigma_deg"]}
     assert all(s < s1[(a, b)] for a, b, s in block["history"][1]["pair_rotation_sigma_deg"])
+
+
+def test_a_mount_that_moved_between_windows_replaces_the_calibration():
+    with torch_threads(1):
+        rig_true, rig, images = box_world_rig(n_frames=4)
+        c1 = rig_true.camera("C1").sensor_to_ego
+        bumped = make_transform(c1[:3, :3] @ rodrigues(np.radians([0.0, 0.4, 0.0])), c1[:3, 3])
+        moved_true = rig_true.with_extrinsics({"C1": bumped})
+        textures = [noise_texture(1024, k) for k in range(6)]
+        for f in rig.frames[2:]:  # the second window sees C1 turned 0.4 deg on its mount
+            images[f.id] = {c.name: render_box_world(c, f.ego_to_world, textures) for c in moved_true.cameras}
+    out, block = calibrate(rig, lambda f, c: images[f][c], window=2)
+    w0, w1 = block["windows"]
+    assert w0["accepted"] and w1["accepted"] and w1["fused_weights"] is None  # adopted, not averaged
+    assert w0["disagreement_sigmas"] is None and w1["disagreement_sigmas"] > AcceptanceRules().consistent_sigmas
+    assert len(block["history"]) == 2 and "fused_with_previous" not in block["history"][1]
+    moved = max(r["rotation_deg"] for r in relative_pose_errors(out, moved_true))
+    before = max(r["rotation_deg"] for r in relative_pose_errors(out, rig_true))
+    assert moved < 0.06 and before > 0.3

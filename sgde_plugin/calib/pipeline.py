@@ -13,7 +13,7 @@ length where the images determine it (see `ba.robust_adjust`): the rig carries t
 intrinsics (`intrinsics_at`); the next window starts from them.
 A history entry also keeps its pairs' rotation 1-sigmas (`pair_sigmas_at`): a later window that agrees with it
 and determines the rig markedly worse (a car that creeps), or was taken standing still, does not replace it (rule
-`less_precise`, `acceptance.check_precision`); one that agrees with it within 3 combined 1-sigmas and is about as
+`less_precise`, `acceptance.check_precision`); one that agrees with it within 6 combined 1-sigmas and is about as
 precise is averaged with it (`fuse_calibrations`, weights 1 / sigma^2; its entry says `fused_with_previous`, its
 report `fused_weights`); one that disagrees beyond that is a change of the mount and replaces it. Each window's
 report gives how far the ego travelled over it (`ego_travel_m`).
@@ -569,18 +569,20 @@ def _still_explained(verdict: Verdict, travel_m: float) -> Verdict:
 
 def _against_in_effect(setup: Setup, verdict: Verdict, start: Mapping[str, np.ndarray],
                        in_effect_sigma: Mapping[tuple[str, str], float], after: Mapping[str, np.ndarray],
-                       sigma: Mapping[tuple[str, str], float], travel_m: float) -> tuple[Verdict, Fused | None]:
+                       sigma: Mapping[tuple[str, str], float], travel_m: float
+                       ) -> tuple[Verdict, Fused | None, float | None]:
     """An accepted window against the calibration in effect (`start`, with its pairs' 1-sigmas): rejected when
     less precise or taken standing still (`check_precision`), else averaged with it when the two agree
-    (`setup.fuse_windows`), else adopted as it is."""
+    (`setup.fuse_windows`), else adopted as it is; also how far they disagree (`disagreement_sigmas`, None when
+    nothing is compared)."""
     if not verdict.accepted or not in_effect_sigma:
-        return verdict, None
+        return verdict, None, None
     turned = rotation_changes(start, after, setup.pairs)
     verdict = check_precision(in_effect_sigma, sigma, turned, setup.rules, still=travel_m < STILL_EGO_M)
-    if (verdict.accepted and setup.fuse_windows
-            and disagreement_sigmas(in_effect_sigma, sigma, turned) <= setup.rules.consistent_sigmas):
-        return verdict, fuse_calibrations(start, in_effect_sigma, after, sigma)
-    return verdict, None
+    z = disagreement_sigmas(in_effect_sigma, sigma, turned)
+    if verdict.accepted and setup.fuse_windows and z <= setup.rules.consistent_sigmas:
+        return verdict, fuse_calibrations(start, in_effect_sigma, after, sigma), z
+    return verdict, None, z
 
 
 def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], start: dict[str, np.ndarray],
@@ -598,7 +600,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
     sigma = {p: s for p, s in res.pair_rotation_sigma_deg.items() if np.isfinite(s) and s > 0}
-    verdict, fused = _against_in_effect(setup, j.verdict, start, in_effect_sigma, after, sigma, travel)
+    verdict, fused, z = _against_in_effect(setup, j.verdict, start, in_effect_sigma, after, sigma, travel)
     j = replace(j, verdict=_still_explained(verdict, travel))
     intr = dict(start_intr)
     if j.verdict.accepted:
@@ -616,6 +618,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "view_phases_because": j.phases_for,
         "ego_travel_m": travel,
         "fused_weights": None if fused is None else {"in_effect": fused.weights[0], "window": fused.weights[1]},
+        "disagreement_sigmas": _num(z),
         "partial": bool(j.blocks),
         "blocks": [list(b) for b in j.blocks],
         "not_linked": j.not_linked if j.blocks else None,

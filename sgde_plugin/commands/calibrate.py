@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "phases when an adjacent pair comes out with a rotation 1-sigma above 0.02 deg "
                              "(default: auto)")
     parser.add_argument("--fuse-windows", action=argparse.BooleanOptionalAction, default=True,
-                        help="average an accepted window that agrees with the calibration in effect (within 3 "
+                        help="average an accepted window that agrees with the calibration in effect (within 6 "
                              "combined 1-sigmas) with it, weighted by precision, instead of replacing it (default on)")
     parser.add_argument("--partial", action=argparse.BooleanOptionalAction, default=True,
                         help="calibrate a window whose observed pairs do not link every camera block by block, each "
