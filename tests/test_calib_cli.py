@@ -149,3 +149,16 @@ def test_a_camera_linked_to_nothing_partial_by_default_rejected_with_no_partial(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no window accepted" in err[0] and "min_correspondences" in err[0]
     assert read_rig_json(out).extra["calibration"]["partial_windows"] == []
+
+
+def test_the_table_says_how_each_window_was_taken():
+    from sgde_plugin.commands.calibrate import summary_rows
+    pair = {"a": "C0", "b": "C1", "inliers": 40, "adjusted_correspondences": 30, "rms_px": 0.2}
+    windows = [{"index": k, "frames": [f"{k:06d}"], "pairs": [pair], "accepted": ok, "rule": rule, "partial": part,
+                "fused_weights": fused}
+               for k, (ok, rule, part, fused) in enumerate([
+                   (True, None, False, None), (True, None, False, {"in_effect": 0.6, "window": 0.4}),
+                   (True, None, True, {"in_effect": 0.5, "window": 0.5}), (True, None, True, None),
+                   (False, "less_precise", False, None)])]
+    assert [r["rule"] for r in summary_rows({"windows": windows})] == [
+        "-", "averaged", "partial+averaged", "partial", "less_precise"]

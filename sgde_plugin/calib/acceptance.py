@@ -70,7 +70,7 @@ MAX_SIGMA_RATIO = 2.0
 # Two windows of one mount agree within this many combined 1-sigmas. 6, not 3: the adjustment's sigmas are 2-4x
 # too small on the worst pairs (keypoint errors stick to physical points, issue #17 sessions 9 and 19), and at 3
 # an unchanged mount's next window was taken for a moved mount and replaced the average in 7 of 12 development
-# sequences (session 23); a mount turned 0.4 deg on the tests' box rig (about 7 combined sigmas) still replaces.
+# sequences (session 23); a mount turned 0.4 deg on the tests' box rig (8.6 combined sigmas) still replaces.
 CONSISTENT_SIGMAS = 6.0
 # Below this travel of the ego over a window the car stood still (DDAD scene_01: 0.000 m; a car at walking
 # pace moves 0.3 m in 0.2 s); a rejection by the adjustment's rules then names that cause.

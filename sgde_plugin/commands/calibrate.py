@@ -106,9 +106,16 @@ def summary_rows(block: dict) -> list[dict]:
                 "adjusted": p.get("adjusted_correspondences"),
                 "rms_px": p.get("rms_px"),
                 "accepted": w["accepted"],
-                "rule": w["rule"] or ("partial" if w.get("partial") else "-"),
+                "rule": w["rule"] or _accepted_as(w),
             })
     return rows
+
+
+def _accepted_as(window: dict) -> str:
+    """How an accepted window was taken: "partial" (block by block), "averaged" (with the calibration in effect),
+    both joined by "+", or "-"."""
+    tags = [t for t, on in (("partial", window.get("partial")), ("averaged", window.get("fused_weights"))) if on]
+    return "+".join(tags) or "-"
 
 
 def run(args: argparse.Namespace) -> int:
