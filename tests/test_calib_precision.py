@@ -9,10 +9,11 @@ import pytest
 
 from sgde_plugin.calib import AcceptanceRules, calibrate
 from sgde_plugin.calib.acceptance import check_precision, default_beta
-from sgde_plugin.calib.pipeline import ego_travel_m, fuse_calibrations, pair_sigmas_at
+from sgde_plugin.calib.fusion import fuse_calibrations
+from sgde_plugin.calib.pipeline import ego_travel_m, pair_sigmas_at
 from sgde_plugin.calib.simulate import box_world_rig, noise_texture, render_box_world
 from sgde_plugin.errors import InputError
-from sgde_plugin.geometry import make_transform, mean_transform, rodrigues, rotation_angle_deg
+from sgde_plugin.geometry import make_transform, mean_transform, rodrigues, rotation_angle_deg, rotation_vector
 from sgde_plugin.pairs import relative_pose_errors
 from sgde_plugin.rig import Frame
 from sgde_plugin.stereo.rectify import torch_threads
@@ -115,6 +116,25 @@ def test_fuse_calibrations_weights_by_precision():
     assert alone.weights == (0.0, 1.0) and np.array_equal(alone.extrinsics["B"], turned["B"])
 
 
+def test_fuse_calibrations_weights_each_pair_by_its_own_sigma():
+    # a chain A-B-C; the window turns B by theta about z and C by 2 theta, and moves B 1 cm along y; it determines
+    # A-B worse than the calibration in effect (0.2 against 0.1 deg) and B-C better (0.1 against 0.2)
+    theta = np.radians(0.3)
+    before = {c: make_transform(np.eye(3), np.array([x, 0.0, 0.0])) for c, x in (("A", 0.0), ("B", 1.0), ("C", 2.0))}
+    window = {"A": before["A"], "B": make_transform(rodrigues([0.0, 0.0, theta]), np.array([1.0, 0.01, 0.0])),
+              "C": make_transform(rodrigues([0.0, 0.0, 2 * theta]), np.array([2.0, 0.0, 0.0]))}
+    f = fuse_calibrations(before, {("A", "B"): 0.1, ("B", "C"): 0.2}, window, {("A", "B"): 0.2, ("B", "C"): 0.1})
+    assert f.weights == pytest.approx((0.5, 0.5))  # worst pairs 0.2 and 0.2: the rig as a whole halfway
+    assert f.pair_weights == pytest.approx({("A", "B"): 0.2, ("B", "C"): 0.8})
+    # relative turns: A-B 0.2 theta, B-C 0.8 theta; placed so that their mean is that of the halfway rig, theta / 2:
+    # A 0.1, B 0.3, C 1.1 theta; positions along y likewise: A-B +2 mm, B-C -8 mm, mean 5 / 3 mm -> 3, 5, -3 mm
+    for cam, turn, y in (("A", 0.1, 0.003), ("B", 0.3, 0.005), ("C", 1.1, -0.003)):
+        assert rotation_vector(f.extrinsics[cam][:3, :3]) == pytest.approx([0.0, 0.0, turn * theta], abs=1e-12)
+        assert f.extrinsics[cam][:3, 3] == pytest.approx(before[cam][:3, 3] + [0.0, y, 0.0], abs=1e-12)
+    # A-B turned 0.06 deg (0.2 of the window's 0.3), where whole-window weights (worst pairs) would turn it 0.15
+    assert rotation_angle_deg(f.extrinsics["A"][:3, :3].T @ f.extrinsics["B"][:3, :3]) == pytest.approx(0.06)
+
+
 def test_a_second_driven_window_is_averaged_with_the_first():
     with torch_threads(1):
         rig_true, rig, images = box_world_rig(n_frames=4)
@@ -127,15 +147,18 @@ def test_a_second_driven_window_is_averaged_with_the_first():
     weights = w1["fused_weights"]
     assert weights["in_effect"] + weights["window"] == pytest.approx(1.0) and min(weights.values()) > 0.2
     assert block["history"][1]["fused_with_previous"] and "fused_with_previous" not in block["history"][0]
-    # the output is the weighted mean of the two windows' own results (the same matches: the same start)
+    # the output is the pair-by-pair mean of the two windows' own results (the same matches: the same start)
     first = {k: np.asarray(v) for k, v in block_alone["history"][0]["sensor_to_ego"].items()}
     second = {k: np.asarray(v) for k, v in block_alone["history"][1]["sensor_to_ego"].items()}
-    w = np.array([weights["in_effect"], weights["window"]])
-    for cam in fused.cameras:
-        assert np.allclose(cam.sensor_to_ego, mean_transform(np.stack([first[cam.name], second[cam.name]]), w),
-                           atol=1e-12)
-    # the fused sigmas are smaller than either window's
+    s0 = {(a, b): s for a, b, s in block_alone["history"][0]["pair_rotation_sigma_deg"]}
     s1 = {(a, b): s for a, b, s in block_alone["history"][1]["pair_rotation_sigma_deg"]}
+    expected = fuse_calibrations(first, s0, second, s1)
+    for cam in fused.cameras:
+        assert np.allclose(cam.sensor_to_ego, expected.extrinsics[cam.name], atol=1e-12)
+    assert weights == pytest.approx(dict(zip(("in_effect", "window"), expected.weights)))
+    shares = {(a, b): w for a, b, w in w1["fused_pair_weights"]}
+    assert shares == pytest.approx({p: s1[p] ** -2 / (s0[p] ** -2 + s1[p] ** -2) for p in s1})  # the window's
+    # the fused sigmas are smaller than either window's
     assert all(s < s1[(a, b)] for a, b, s in block["history"][1]["pair_rotation_sigma_deg"])
 
 

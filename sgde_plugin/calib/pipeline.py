@@ -12,10 +12,11 @@ length where the images determine it (see `ba.robust_adjust`): the rig carries t
 1-sigma and whether it was adopted (`focal`), and a history entry that changed any keeps the window's
 intrinsics (`intrinsics_at`); the next window starts from them.
 A history entry also keeps its pairs' rotation 1-sigmas (`pair_sigmas_at`): a later window that agrees with it
-and determines the rig markedly worse (a car that creeps), or was taken standing still, does not replace it (rule
-`less_precise`, `acceptance.check_precision`); one that agrees with it within 6 combined 1-sigmas and is about as
-precise is averaged with it (`fuse_calibrations`, weights 1 / sigma^2; its entry says `fused_with_previous`, its
-report `fused_weights`); one that disagrees beyond that is a change of the mount and replaces it. Each window's
+and determines every pair markedly worse (a car that creeps), or was taken standing still, does not replace it (rule
+`less_precise`, `acceptance.check_precision`); one that agrees with it within 6 combined 1-sigmas otherwise is
+averaged with it pair by pair (`fusion.fuse_calibrations`, each pair weighted by 1 / its sigma^2 in each; its entry
+says `fused_with_previous`, its report `fused_weights` and `fused_pair_weights`); one that disagrees beyond that is a
+change of the mount and replaces it. Each window's
 report gives how far the ego travelled over it (`ego_travel_m`).
 With GLC, a window whose observed pairs do not link every camera is calibrated block by block (`partial`, default on;
 `blocks.place_blocks`): its report says `partial`, its `blocks` and why (`not_linked`), the pairs between blocks are
@@ -49,7 +50,6 @@ from .acceptance import (
     check_correspondences,
     check_precision,
     check_result,
-    common_pairs,
     default_beta,
     disagreement_sigmas,
     rotation_changes,
@@ -67,6 +67,7 @@ from .correspondences import (
     refines_keypoints,
     with_links,
 )
+from .fusion import Fused, fuse_calibrations
 from .methods import METHODS, MethodResult, run_method
 
 CALIB_VERSION = "1"
@@ -300,32 +301,6 @@ class WindowResult:
     report: dict[str, Any]
     intrinsics: dict[str, CameraModel]  # after the window (refined focal lengths when accepted)
     pair_sigma_deg: dict[tuple[str, str], float] = field(default_factory=dict)  # of `after`
-
-
-@dataclass
-class Fused:
-    """The calibration in effect and a window's, averaged with weights 1 / (worst pair's 1-sigma)^2."""
-
-    extrinsics: dict[str, np.ndarray]
-    pair_sigma_deg: dict[tuple[str, str], float]
-    weights: tuple[float, float]  # in effect, window (summing to 1)
-
-
-def fuse_calibrations(in_effect: Mapping[str, np.ndarray], in_effect_sigma_deg: Mapping[tuple[str, str], float],
-                      window: Mapping[str, np.ndarray], window_sigma_deg: Mapping[tuple[str, str], float]) -> Fused:
-    """Precision-weighted mean of two calibrations of one rig that agree (independent windows): every camera's
-    extrinsics by `mean_transform`, each by 1 / (its worst pair's rotation 1-sigma)^2; a pair's fused 1-sigma
-    combines the two as independent estimates (one that only the window has keeps the window's)."""
-    common = common_pairs(in_effect_sigma_deg, window_sigma_deg)
-    if not common:  # nothing to weigh them by: the window's, as it is
-        return Fused(dict(window), dict(window_sigma_deg), (0.0, 1.0))
-    w = np.array([1.0 / max(in_effect_sigma_deg[p] for p in common) ** 2,
-                  1.0 / max(window_sigma_deg[p] for p in common) ** 2])
-    w /= w.sum()
-    ext = {n: mean_transform(np.stack([in_effect[n], window[n]]), w) for n in window}
-    sigma = {p: float((in_effect_sigma_deg[p] ** -2 + s ** -2) ** -0.5) if p in in_effect_sigma_deg else s
-             for p, s in window_sigma_deg.items()}
-    return Fused(ext, sigma, (float(w[0]), float(w[1])))
 
 
 def window_ego_poses(rig: Rig, frames: Sequence[Frame], cameras: Sequence[str]) -> np.ndarray:
@@ -618,6 +593,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "view_phases_because": j.phases_for,
         "ego_travel_m": travel,
         "fused_weights": None if fused is None else {"in_effect": fused.weights[0], "window": fused.weights[1]},
+        "fused_pair_weights": None if fused is None else [[a, b, w] for (a, b), w in fused.pair_weights.items()],
         "disagreement_sigmas": _num(z),
         "partial": bool(j.blocks),
         "blocks": [list(b) for b in j.blocks],
