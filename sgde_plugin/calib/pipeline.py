@@ -560,6 +560,14 @@ def _against_in_effect(setup: Setup, verdict: Verdict, start: Mapping[str, np.nd
     return verdict, None, z
 
 
+def _fused_fields(fused: Fused | None) -> dict[str, Any]:
+    """A window's report fields on its averaging with the calibration in effect (None when it was not averaged)."""
+    if fused is None:
+        return {"fused_weights": None, "fused_pair_weights": None}
+    return {"fused_weights": {"in_effect": fused.weights[0], "window": fused.weights[1]},
+            "fused_pair_weights": [[a, b, w] for (a, b), w in fused.pair_weights.items()]}
+
+
 def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], start: dict[str, np.ndarray],
                       start_intr: dict[str, CameraModel],
                       in_effect_sigma: Mapping[tuple[str, str], float]) -> WindowResult:
@@ -592,8 +600,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
         "view_phases": j.phases,
         "view_phases_because": j.phases_for,
         "ego_travel_m": travel,
-        "fused_weights": None if fused is None else {"in_effect": fused.weights[0], "window": fused.weights[1]},
-        "fused_pair_weights": None if fused is None else [[a, b, w] for (a, b), w in fused.pair_weights.items()],
+        **_fused_fields(fused),
         "disagreement_sigmas": _num(z),
         "partial": bool(j.blocks),
         "blocks": [list(b) for b in j.blocks],
