@@ -32,7 +32,8 @@ class Fused:
     pair_weights: dict[tuple[str, str], float]  # per pair both have: the window's share of its relative pose
 
 
-def _usable(sigma_deg: Mapping[tuple[str, str], float]) -> dict[tuple[str, str], float]:
+def usable_sigmas(sigma_deg: Mapping[tuple[str, str], float]) -> dict[tuple[str, str], float]:
+    """The pairs whose rotation 1-sigma is finite and positive, with it (the ones a weight can come from)."""
     return {p: float(s) for p, s in sigma_deg.items() if np.isfinite(s) and s > 0}
 
 
@@ -61,7 +62,7 @@ def fuse_calibrations(in_effect: Mapping[str, np.ndarray], in_effect_sigma_deg: 
     laplacian, rhs, linked = np.zeros((len(cams), len(cams))), np.zeros((len(cams), 6)), set()
     for ext, sigma in ((in_effect, in_effect_sigma_deg), (window, window_sigma_deg)):
         d = offsets(ext)
-        for (a, b), s in _usable(sigma).items():
+        for (a, b), s in usable_sigmas(sigma).items():
             if a not in index or b not in index:
                 continue
             i, j, wt = index[a], index[b], s ** -2.0
@@ -78,9 +79,9 @@ def fuse_calibrations(in_effect: Mapping[str, np.ndarray], in_effect_sigma_deg: 
         x[rows] += d_mean[rows].mean(axis=0)
     ext = {c: make_transform(rodrigues(x[index[c], :3]) @ in_effect[c][:3, :3], in_effect[c][:3, 3] + x[index[c], 3:])
            for c in cams}
-    before = _usable(in_effect_sigma_deg)
+    before = usable_sigmas(in_effect_sigma_deg)
     sigma = {**before, **{p: float((before[p] ** -2 + s ** -2) ** -0.5) if p in before else s
-                          for p, s in _usable(window_sigma_deg).items()}}
+                          for p, s in usable_sigmas(window_sigma_deg).items()}}
     shares = {p: float(window_sigma_deg[p] ** -2 / (window_sigma_deg[p] ** -2 + in_effect_sigma_deg[p] ** -2))
               for p in common}
     return Fused(ext, sigma, (float(w[0]), float(w[1])), shares)

@@ -67,7 +67,7 @@ from .correspondences import (
     refines_keypoints,
     with_links,
 )
-from .fusion import Fused, fuse_calibrations
+from .fusion import Fused, fuse_calibrations, usable_sigmas
 from .methods import METHODS, MethodResult, run_method
 
 CALIB_VERSION = "1"
@@ -582,7 +582,7 @@ def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], st
     j = _judge_phases(rig, setup, cams, win, ego, start)
     res = j.result or MethodResult(dict(start), iterations=0, converged=False)
     after = {**start, **res.sensor_to_ego}
-    sigma = {p: s for p, s in res.pair_rotation_sigma_deg.items() if np.isfinite(s) and s > 0}
+    sigma = usable_sigmas(res.pair_rotation_sigma_deg)
     verdict, fused, z = _against_in_effect(setup, j.verdict, start, in_effect_sigma, after, sigma, travel)
     j = replace(j, verdict=_still_explained(verdict, travel))
     intr = dict(start_intr)
