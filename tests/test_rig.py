@@ -81,6 +81,8 @@ def test_validate_accepts_and_prints_tables(tmp_path: Path, capsys: pytest.Captu
     assert main(["validate", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "6 cameras" in out and "overlap_deg" in out and "CAM_BACK_LEFT" in out
+    fovs = [float(line.split()[3]) for line in out.splitlines() if line.startswith("CAM_") and "pinhole" in line]
+    assert len(fovs) == 6 and all(abs(f - FOV) < 0.01 for f in fovs)  # a pinhole's horizontal field of view
     assert read_rig_folder(tmp_path, check_images=True).frames[0].images["CAM_FRONT"].exists()
 
 

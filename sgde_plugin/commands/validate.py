@@ -21,13 +21,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def camera_rows(rig: Rig) -> list[dict]:
-    """One table row per camera: model, size, field of view, mounting position and viewing direction."""
+    """One table row per camera: model, size, field of view (a fisheye's cone, a pinhole's horizontal), mounting
+    position and viewing direction."""
     import numpy as np
 
     rows = []
     for cam in rig.cameras:
         axis = cam.sensor_to_ego[:3, 2]
-        fov = getattr(cam.intrinsics, "fov_deg", float("nan"))
+        fov = getattr(cam.intrinsics, "fov_deg", None)
+        if fov is None:
+            fov = cam.intrinsics.hfov_deg
         rows.append({
             "camera": cam.name,
             "model": cam.model,
