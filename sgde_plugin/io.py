@@ -32,11 +32,8 @@ def is_plain_name(name: str) -> bool:
     )
 
 
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary sibling path; rename it onto `path` only if the block succeeds. A path that
-    cannot be written (a folder, a read-only file system, a parent that is a file) is an InputError."""
-    path = Path(path)
+def _temp_sibling(path: Path) -> Path:
+    """A new empty file next to `path` (its folder created); InputError when `path` cannot be written there."""
     if path.is_dir():
         raise InputError(path, None, "is a folder; expected a file path")
     try:
@@ -45,7 +42,22 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except OSError as exc:
         raise InputError(path, None, f"cannot write ({exc.strerror or exc})") from None
     os.close(fd)
-    tmp_path = Path(tmp)
+    return Path(tmp)
+
+
+def check_writable(path: str | Path | None) -> None:
+    """Raise now the InputError a later write of `path` would raise (for commands that work long before they
+    write); `path` itself is not touched. None: nothing to check."""
+    if path is not None:
+        _temp_sibling(Path(path)).unlink()
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary sibling path; rename it onto `path` only if the block succeeds. A path that
+    cannot be written (a folder, a read-only file system, a parent that is a file) is an InputError."""
+    path = Path(path)
+    tmp_path = _temp_sibling(path)
     # mkstemp creates 0600; give the file the mode a plain open() would
     umask = os.umask(0)
     os.umask(umask)

@@ -215,6 +215,32 @@ def test_outputs_that_cannot_be_written_are_named(tmp_path):
         write_rig_json(make_rig(1), tmp_path / "afile" / "rig.json") if (tmp_path / "afile").write_text("x") else None
 
 
+def test_outputs_that_cannot_be_written_are_refused_before_the_work(rig_dir, tmp_path, capsys, monkeypatch):
+    import sgde_plugin.calib
+
+    def never(*args, **kwargs):
+        raise AssertionError("the command worked before it checked its output")
+
+    monkeypatch.setattr(sgde_plugin.calib, "calibrate", never)
+    afile = tmp_path / "afile"
+    afile.write_text("kept")
+    cases = [
+        ["calibrate", str(rig_dir), "--out", str(afile / "rig.json")],
+        ["calibrate", str(rig_dir), "--out", str(tmp_path / "ok.json"), "--json", str(afile / "r.json")],
+        ["calibrate", str(rig_dir), "--out", str(tmp_path)],
+        ["eval", str(rig_dir), "--cache", str(tmp_path / "nocache"), "--json", str(afile / "e.json")],
+        ["cache", "info", str(tmp_path / "nocache"), "--json", str(afile / "c.json")],
+        ["bench", "nosuchbench", "--json", str(afile / "b.json")],
+    ]
+    for argv in cases:
+        assert main(argv) == 2, argv
+        line = _one_line(capsys)
+        assert "afile" in line and "cannot write" in line or "is a folder" in line, (argv, line)
+    assert afile.read_text() == "kept" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "rig"]
+    assert main(["cache", "info", str(tmp_path / "nocache"), "--json", str(afile)]) == 2  # checked, not replaced
+    assert afile.read_text() == "kept"
+
+
 def test_damaged_cache_metadata_is_one_line(tmp_path, capsys):
     out = tmp_path / "c"
     build(tiny_rig(2), out, scene="s")

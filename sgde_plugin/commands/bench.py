@@ -110,8 +110,9 @@ def _checked_options(args: argparse.Namespace) -> float | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the named (or all) benchmarks, print each result, optionally write the JSON."""
-    from ..io import atomic_write_text
+    from ..io import atomic_write_text, check_writable
 
+    check_writable(args.json_out)
     if args.names[:1] == ["real"]:
         return run_real_bench(args)
     scale = _checked_options(args)

@@ -54,8 +54,9 @@ def print_info(info: dict) -> None:
 def run(args: argparse.Namespace) -> int:
     """Print info, or verify and exit 2 when any chunk is bad or any frame is missing."""
     from ..cache.inspection import cache_info, verify_cache
-    from ..io import atomic_write_text
+    from ..io import atomic_write_text, check_writable
 
+    check_writable(args.json)
     if args.action == "info":
         result = cache_info(args.cache)
         print_info(result)

@@ -121,12 +121,14 @@ def _accepted_as(window: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     """Calibrate, write the rig atomically, print the per-pair table and the verdict."""
     from ..calib import AcceptanceRules, AdjustConfig, MatchConfig, calibrate, default_beta
-    from ..io import atomic_write_text
+    from ..io import atomic_write_text, check_writable
     from ..readers.detect import load_rig
     from ..rig import write_rig_json
 
     frames = parse_frames(args.frames)
     _check_numbers(args)
+    check_writable(args.out)
+    check_writable(args.json)
     rig = load_rig(args.dir, check_images=True)
     if args.masks:
         from ..masks import attach_masks

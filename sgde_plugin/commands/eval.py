@@ -54,11 +54,12 @@ def _truth_rig(rig, dir_arg: str, truth: str | None):
 def run(args: argparse.Namespace) -> int:
     """Evaluate every cached frame that has ground truth; print the tables; optionally write JSON."""
     from ..cache import PriorCache
-    from ..io import atomic_write_text
+    from ..io import atomic_write_text, check_writable
     from ..progress import progress
     from ..readers.detect import load_rig
     from ..stereo.evaluate import PriorEvaluator, report_rows
 
+    check_writable(args.json_out)
     rig = load_rig(args.dir)
     if args.masks:
         from ..masks import attach_masks
