@@ -25,7 +25,7 @@ from .demo_settings import DemoSettings
 from .export.models import build_r18
 from .export.workflow import export_spec
 from .figures import CameraPanel, save_bev_points, save_prior_panels
-from .io import atomic_path, atomic_write_text
+from .io import atomic_path, atomic_write_text, make_folder
 from .nn import DepthNet
 from .nn.sequence import RigSequence, lidar_pattern, overlap_masks
 from .nn.train import (
@@ -188,8 +188,7 @@ def _export(ckpt: Path, out: Path, size: tuple[int, int]) -> dict[str, Any]:
 
 def run_demo(out: str | Path, settings: DemoSettings = DemoSettings(), log: Callable[[str], None] = print) -> dict:  # noqa: B008
     """Run the whole demo into `out`; returns the summary (also written as summary.json and report.md)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(out)
     clock = Stopwatch(log)
     s = settings
     rig_dir = out / "rig"

@@ -52,6 +52,18 @@ def check_writable(path: str | Path | None) -> None:
         _temp_sibling(Path(path)).unlink()
 
 
+def make_folder(path: str | Path) -> Path:
+    """Create the output folder `path` with its parents (it may exist); InputError naming it when it cannot be."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(path, None, "exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(path, None, f"cannot create the folder ({exc.strerror or exc})") from None
+    return path
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path; rename it onto `path` only if the block succeeds. A path that

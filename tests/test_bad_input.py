@@ -187,6 +187,8 @@ def test_deeply_nested_json_is_one_line(rig_dir, capsys):
 def test_options_and_output_paths(rig_dir, tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("x")
+    two = tmp_path / "two"
+    write_folder(two, make_rig(frames=2))
     cases = [
         (["synth", "--preset", "nuscenes", "--frames", "1", "--out", str(tmp_path / "s"), "--pose-noise-deg", "nan"],
          "argument --pose-noise-deg: must be a finite number"),
@@ -201,6 +203,9 @@ def test_options_and_output_paths(rig_dir, tmp_path, capsys):
         (["calibrate", str(rig_dir), "--out", "x.json", "--alpha", "nan"], "argument --alpha"),
         (["calibrate", str(rig_dir), "--out", str(tmp_path / "x.json"), "--masks", str(afile)],
          "mask folder not found"),
+        (["masks", str(two), "--out", str(afile / "sub")], "cannot create the folder (Not a directory)"),
+        (["masks", str(two), "--out", str(afile)], "afile: exists and is not a folder"),
+        (["demo", "--out", str(afile / "sub")], "cannot create the folder (Not a directory)"),
     ]
     for argv, expected in cases:
         assert main(argv) == 2, argv

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from ..errors import InputError
 from ..tables import format_table
@@ -26,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     """Estimate (or take the user's) mask per camera, write them atomically, print a table."""
     import numpy as np
 
-    from ..io import write_image
+    from ..io import make_folder, write_image
     from ..masks import MaskSettings, estimate_static_mask, rig_ground_maps, spread_frames
     from ..readers.detect import load_rig
 
@@ -35,9 +34,7 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.dir)
     if len(rig.frames) < 2:
         raise InputError(args.dir, "frames", f"has {len(rig.frames)} frame; a static mask needs at least 2")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "--out", "exists and is not a folder")
+    out = make_folder(args.out)
     picked = [rig.frames[i].id for i in spread_frames(len(rig.frames), args.frames)]
     masks, rows = {}, []
     settings = MaskSettings()
@@ -50,7 +47,6 @@ def run(args: argparse.Namespace) -> int:
             masks[cam] = estimate_static_mask([rig.load_image(f, cam) for f in picked], settings, maps)
             source = "estimated" if maps is None else "estimated, ground motion"
         rows.append({"camera": cam, "source": source, "masked": float(1.0 - masks[cam].mean())})
-    out.mkdir(parents=True, exist_ok=True)
     for cam, mask in masks.items():
         write_image(out / f"{cam}.png", np.where(mask, 255, 0).astype(np.uint8))
     print(f"{args.dir}: masks from {len(picked)} frames written to {out}")
