@@ -201,6 +201,8 @@ def test_options_and_output_paths(rig_dir, tmp_path, capsys):
          "--opset: must be between 17 and"),
         (["cache", "info", "nosuchprotocol://x"], "unsupported cache location"),
         (["calibrate", str(rig_dir), "--out", "x.json", "--alpha", "nan"], "argument --alpha"),
+        (["calibrate", str(rig_dir), "--out", "x.json", "--loftr-weights", str(afile)],
+         "--loftr-weights: only `--matcher loftr` takes a checkpoint (matcher: sift)"),
         (["calibrate", str(rig_dir), "--out", str(tmp_path / "x.json"), "--masks", str(afile)],
          "mask folder not found"),
         (["masks", str(two), "--out", str(afile / "sub")], "cannot create the folder (Not a directory)"),

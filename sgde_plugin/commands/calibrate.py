@@ -160,7 +160,10 @@ STRICT_EXIT = 3
 
 
 def _check_numbers(args: argparse.Namespace) -> None:
-    """One InputError for the first numeric option out of range."""
+    """One InputError for the first numeric option out of range (or an option the chosen matcher does not take)."""
+    if args.loftr_weights is not None and args.matcher != "loftr":
+        raise InputError(None, "--loftr-weights",
+                         f"only `--matcher loftr` takes a checkpoint (matcher: {args.matcher})")
     if args.window < 1:
         raise InputError(None, "--window", "must be at least 1")
     if args.beta is not None and args.beta < 0:
