@@ -49,7 +49,8 @@ def test_every_field_round_trips_through_a_file_and_has_an_option(model, tmp_pat
     assert PriorConfig.from_settings(**config.settings()) == config
     for preset in PRESETS:  # presets and matcher-dependent defaults survive the round trip too
         for matcher in ("sgbm", "raft-stereo"):
-            c = load_prior_config(preset=preset, overrides={"matcher": matcher, "matcher_path": str(model)})
+            path = {"matcher_path": str(model)} if matcher != "sgbm" else {}
+            c = load_prior_config(preset=preset, overrides={"matcher": matcher, **path})
             assert load_prior_config(save_prior_config(c, tmp_path / "p.yaml")) == c
     # every field has a command-line option (matcher_options through --matcher-option KEY=VALUE)
     options = {name for name, _, _ in SETTING_OPTIONS} | {"matcher_options"}
@@ -133,6 +134,8 @@ def test_bad_command_line_values_and_presets_are_one_line(tmp_path, capsys):
         (["--device", "tpu"], "device: expected one of cpu, cuda"),
         (["--matcher-option", "novalue"], "--matcher-option: expected KEY=VALUE"),
         (["--matcher", "raft-stereo"], "matcher_path: matcher 'raft-stereo' needs a model file"),
+        (["--matcher-path", str(tmp_path)], "matcher_path: matcher 'sgbm' takes no model file (the learned ones do: "),
+        (["--matcher", "planesweep", "--matcher-path", "m.pt"], "matcher_path: matcher 'planesweep' takes no model"),
     ):
         code = cli_main(["prior", str(tmp_path), "--out", str(tmp_path / "c"), *argv])
         err = capsys.readouterr().err.strip().splitlines()

@@ -286,11 +286,20 @@ class PriorConfig:
             self._set("matcher_iters", 32)
         self._set("matcher_options", dict(self.matcher.options or {}))
 
+    def _check_model_file(self) -> None:
+        """A learned matcher needs a model file; any other refuses one (a forgotten --matcher would otherwise
+        build an SGBM prior silently)."""
+        m = self.matcher
+        if self.learned and not m.path:
+            raise InputError(None, "matcher_path", f"matcher {m.name!r} needs a model file")
+        if not self.learned and m.path:
+            raise InputError(None, "matcher_path", f"matcher {m.name!r} takes no model file (the learned ones do: "
+                                                   f"{', '.join(sorted(LEARNED_MATCHERS))})")
+
     def _check(self) -> None:
         """One-line InputError for a value out of its range (named by its flat setting name)."""
         m, g = self.matcher, self.geometry
-        if self.learned and not m.path:
-            raise InputError(None, "matcher_path", f"matcher {m.name!r} needs a model file")
+        self._check_model_file()
         for name, value, allowed in (("normalize", self.images.normalize, NORMALIZATIONS),
                                      ("fisheye", g.fisheye, FISHEYE_PATHS), ("device", m.device, DEVICES)):
             if value not in allowed:
