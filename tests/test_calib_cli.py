@@ -159,6 +159,8 @@ def test_the_table_says_how_each_window_was_taken():
                for k, (ok, rule, part, fused) in enumerate([
                    (True, None, False, None), (True, None, False, {"in_effect": 0.6, "window": 0.4}),
                    (True, None, True, {"in_effect": 0.5, "window": 0.5}), (True, None, True, None),
-                   (False, "less_precise", False, None)])]
+                   (False, "less_precise", False, None), (False, "unconfirmed", False, None),
+                   (True, None, False, None)])]
+    windows[-1]["confirms"] = {"window": 5, "timestamp_us": 0, "disagreement_sigmas": 1.2, "pair_weights": []}
     assert [r["rule"] for r in summary_rows({"windows": windows})] == [
-        "-", "averaged", "partial+averaged", "partial", "less_precise"]
+        "-", "averaged", "partial+averaged", "partial", "less_precise", "unconfirmed", "confirms 5"]

@@ -113,8 +113,10 @@ def summary_rows(block: dict) -> list[dict]:
 
 def _accepted_as(window: dict) -> str:
     """How an accepted window was taken: "partial" (block by block), "averaged" (with the calibration in effect),
-    both joined by "+", or "-"."""
-    tags = [t for t, on in (("partial", window.get("partial")), ("averaged", window.get("fused_weights"))) if on]
+    "confirms N" (adopted with window N, which it confirmed), joined by "+", or "-"."""
+    confirms = window.get("confirms")
+    tags = [t for t, on in (("partial", window.get("partial")), ("averaged", window.get("fused_weights")),
+                            (f"confirms {confirms['window']}" if confirms else "", confirms)) if on]
     return "+".join(tags) or "-"
 
 
