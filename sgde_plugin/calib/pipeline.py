@@ -590,7 +590,8 @@ def _change_confirmed(setup: Setup, res: WindowResult, pending: WindowResult | N
             return replace(res, after={**res.after, **fused.extrinsics}, pair_sigma_deg=fused.pair_sigma_deg,
                            report={**res.report, "confirms": confirms}), None
     why = (f"disagrees with the calibration in effect by {z:.1f} combined 1-sigmas (more than {limit:g}): a moved "
-           f"mount or a window whose 1-sigmas understate its error; adopted only if the next window agrees with it")
+           f"mount or a window whose 1-sigmas understate its error; adopted only if the next window agrees with it "
+           "(--no-fuse-windows: adopted at once)")
     held = replace(res, verdict=Verdict(False, "unconfirmed", why))
     fired = [*res.report["rules_fired"], {"rule": "unconfirmed", "reason": why}]
     return replace(held, report={**res.report, "accepted": False, "rule": "unconfirmed", "reason": why,
