@@ -565,7 +565,12 @@ def _fused_fields(fused: Fused | None) -> dict[str, Any]:
     if fused is None:
         return {"fused_weights": None, "fused_pair_weights": None}
     return {"fused_weights": {"in_effect": fused.weights[0], "window": fused.weights[1]},
-            "fused_pair_weights": [[a, b, w] for (a, b), w in fused.pair_weights.items()]}
+            "fused_pair_weights": _pair_weight_rows(fused)}
+
+
+def _pair_weight_rows(fused: Fused) -> list[list]:
+    """[a, b, the second calibration's share of the pair] per pair both calibrations have (report rows)."""
+    return [[a, b, w] for (a, b), w in fused.pair_weights.items()]
 
 
 def _change_confirmed(setup: Setup, res: WindowResult, pending: WindowResult | None
@@ -586,16 +591,15 @@ def _change_confirmed(setup: Setup, res: WindowResult, pending: WindowResult | N
             fused = fuse_calibrations(pending.after, pending.pair_sigma_deg, res.after, res.pair_sigma_deg)
             confirms = {"window": pending.report["index"], "timestamp_us": pending.report["timestamp_us"],
                         "disagreement_sigmas": _num(z_pending),
-                        "pair_weights": [[a, b, w] for (a, b), w in fused.pair_weights.items()]}
+                        "pair_weights": _pair_weight_rows(fused)}
             return replace(res, after={**res.after, **fused.extrinsics}, pair_sigma_deg=fused.pair_sigma_deg,
                            report={**res.report, "confirms": confirms}), None
     why = (f"disagrees with the calibration in effect by {z:.1f} combined 1-sigmas (more than {limit:g}): a moved "
            f"mount or a window whose 1-sigmas understate its error; adopted only if the next window agrees with it "
            "(--no-fuse-windows: adopted at once)")
-    held = replace(res, verdict=Verdict(False, "unconfirmed", why))
     fired = [*res.report["rules_fired"], {"rule": "unconfirmed", "reason": why}]
-    return replace(held, report={**res.report, "accepted": False, "rule": "unconfirmed", "reason": why,
-                                 "rules_fired": fired}), res
+    report = {**res.report, "accepted": False, "rule": "unconfirmed", "reason": why, "rules_fired": fired}
+    return replace(res, verdict=Verdict(False, "unconfirmed", why), report=report), res
 
 
 def _calibrate_window(rig: Rig, setup: Setup, k: int, win: tuple[Frame, ...], start: dict[str, np.ndarray],
