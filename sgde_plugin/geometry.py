@@ -10,7 +10,8 @@ ORTHONORMAL_TOL = 1e-6
 def rotation_error(R: np.ndarray) -> float:
     """How far a 3x3 matrix is from a proper rotation: max |R^T R - I| (inf for det <= 0 or non-finite)."""
     R = np.asarray(R, dtype=np.float64)
-    if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.linalg.det(R) <= 0:
+    # entries beyond 2 cannot belong to a rotation, and their products may overflow
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)) or np.abs(R).max() > 2.0 or np.linalg.det(R) <= 0:
         return float("inf")
     return float(np.abs(R.T @ R - np.eye(3)).max())
 

@@ -91,7 +91,7 @@ def _fov(entry: dict, where: str) -> float:
 def intrinsics_from_dict(entry: dict, where: str = "camera") -> CameraModel:
     """Build and check a camera model from its `rig.json` fields; InputError names the bad key."""
     model = entry.get("model")
-    if model not in MODELS:
+    if not isinstance(model, str) or model not in MODELS:
         raise InputError(None, f"{where}.model", f"unknown camera model {model!r} (expected {', '.join(MODELS)})")
     w, h = _size(entry, "width", where), _size(entry, "height", where)
     if model == "pinhole":

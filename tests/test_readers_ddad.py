@@ -8,6 +8,7 @@ import json
 import math
 import shutil
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -186,6 +187,22 @@ def _missing_calibration(folder: Path) -> str:
     return "file not found"
 
 
+def _datum_key_not_a_string(folder: Path) -> str:
+    path = next(folder.glob("scene_*.json"))
+    doc = json.loads(path.read_text())
+    doc["samples"][1]["datum_keys"][0] = ["a", "list"]
+    path.write_text(json.dumps(doc))
+    return "samples[1].datum_keys: key ['a', 'list'] is not a string"
+
+
+def _huge_quaternion(folder: Path) -> str:
+    path = next((folder / "calibration").iterdir())
+    doc = json.loads(path.read_text())
+    doc["extrinsics"][1]["rotation"]["qx"] = 1e308  # its square overflows: no warning, one line
+    path.write_text(json.dumps(doc))
+    return "extrinsics[1].rotation: quaternion is not unit length (norm 1e+308)"
+
+
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("ddad_small") / "000000"
@@ -194,14 +211,17 @@ def small_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder
 
 
-@pytest.mark.parametrize("defect", [_truncate, _missing_camera, _missing_file, _missing_calibration])
+@pytest.mark.parametrize("defect", [_truncate, _missing_camera, _missing_file, _missing_calibration,
+                                    _datum_key_not_a_string, _huge_quaternion])
 def test_defects_are_one_line_exit_2(defect, small_scene: Path, tmp_path: Path,
                                      capsys: pytest.CaptureFixture) -> None:
     folder = tmp_path / "000000"
     shutil.copytree(small_scene, folder)
     capsys.readouterr()
     expected = defect(folder)
-    assert main(["validate", str(folder)]) == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a warning would be a second line on stderr
+        assert main(["validate", str(folder)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("sgde validate: ") and "Traceback" not in err
     assert expected in err, err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +102,12 @@ def _break(doc: dict, defect: str) -> str:
     if defect == "not_orthonormal":
         cam["sensor_to_ego"][0][0] += 1e-4
         return "cameras[CAM_FRONT_RIGHT].sensor_to_ego: rotation is not orthonormal"
+    if defect == "model_not_a_name":
+        cam["model"] = ["pinhole"]
+        return "cameras[CAM_FRONT_RIGHT].model: unknown camera model ['pinhole']"
+    if defect == "huge_rotation_entry":  # its products overflow: no warning, one line
+        cam["sensor_to_ego"][0][0] = 1e308
+        return "cameras[CAM_FRONT_RIGHT].sensor_to_ego: rotation has determinant -8.19e+307 (a reflection)"
     if defect == "ring_unknown_camera":
         doc["ring"][2] = "CAM_NOPE"
         return "ring: camera 'CAM_NOPE' does not exist"
@@ -110,8 +117,8 @@ def _break(doc: dict, defect: str) -> str:
     raise AssertionError(defect)
 
 
-DEFECTS = ["bad_json", "missing_key", "non_square_K", "singular_K", "not_orthonormal", "ring_unknown_camera",
-           "wrong_format", "image_size", "image_missing"]
+DEFECTS = ["bad_json", "missing_key", "non_square_K", "singular_K", "not_orthonormal", "model_not_a_name",
+           "huge_rotation_entry", "ring_unknown_camera", "wrong_format", "image_size", "image_missing"]
 
 
 @pytest.mark.parametrize("defect", DEFECTS)
@@ -133,7 +140,9 @@ def test_each_defect_is_one_line_and_exit_2(defect: str, tmp_path: Path, capsys:
         key = _break(doc, defect)
         (tmp_path / "rig.json").write_text(json.dumps(doc))
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
-    assert main(["validate", str(tmp_path)]) == 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a warning would be a second line on stderr
+        assert main(["validate", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
     assert len(lines) == 1, err

@@ -44,12 +44,11 @@ from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
 from ..rigfile import intrinsics_from_dict
-from .jsonio import get, read_json
+from .jsonio import get, read_json, unit_quaternion
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
 REFERENCE = "CAMERA_01"
 LIDAR = "LIDAR"
-QUATERNION_TOL = 1e-3
 
 _RFC3339 = re.compile(
     r"^(\d{4})-(\d{2})-(\d{2})[Tt ](\d{2}):(\d{2}):(\d{2})(?:\.(\d{1,9}))?([Zz]|[+-]\d{2}:\d{2})$"
@@ -107,11 +106,7 @@ def _pose(row: object, file: Path, where: str, zero_is_identity: bool = False) -
     r = _field(row, "rotation", file, where, dict, default={})
     trans = [_num(t, k, file, f"{where}.translation") for k in ("x", "y", "z")]
     q = np.array([_num(r, k, file, f"{where}.rotation") for k in ("qw", "qx", "qy", "qz")])
-    norm = float(np.linalg.norm(q))
-    if norm == 0.0 and zero_is_identity:
-        q = np.array([1.0, 0.0, 0.0, 0.0])
-    elif abs(norm - 1.0) > QUATERNION_TOL:
-        raise InputError(file, f"{where}.rotation", f"quaternion is not unit length (norm {norm:.6g})")
+    q = unit_quaternion(q, file, where, zero_is_identity)
     return make_transform(quaternion_to_rotation(q), trans)
 
 
@@ -183,6 +178,8 @@ def _sample_sensors(s: dict, datums: dict[str, dict], scene_path: Path, where: s
     """The ring cameras' and LiDAR's datums of one sample, by upper-case sensor name."""
     by_name: dict[str, Keyed] = {}
     for key in _field(s, "datum_keys", scene_path, where, list):
+        if not isinstance(key, str):
+            raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not a string")
         d = datums.get(key)
         if d is None:
             raise InputError(scene_path, f"{where}.datum_keys", f"key {key!r} is not in data")

@@ -13,6 +13,8 @@ import numpy as np
 
 from ..errors import InputError
 
+QUATERNION_TOL = 1e-3  # |q| must be 1 within this; the rotation uses the normalised q
+
 _SEPARATOR = re.compile(r"\s*,?\s*")
 _BOUNDARY = re.compile(r"\}\s*,\s*\{")
 _CHUNK = 1 << 23  # characters read per step when streaming a table
@@ -229,4 +231,16 @@ def number_list(row: dict, key: str, length: int, file: Path | str | None, where
     return arr
 
 
-__all__ = ["get", "iter_json_array", "number_list", "read_json", "scan_table"]
+def unit_quaternion(q: np.ndarray, file: Path | str | None, where: str, zero_is_identity: bool = False
+                    ) -> np.ndarray:
+    """q (w, x, y, z) when its length is 1 within QUATERNION_TOL (a zero q as the identity when allowed)."""
+    big = float(np.abs(q).max(initial=0.0))
+    norm = float(np.linalg.norm(q / big)) * big if big > 0 else 0.0  # scaled first: huge entries do not overflow
+    if norm == 0.0 and zero_is_identity:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    if abs(norm - 1.0) > QUATERNION_TOL:
+        raise InputError(file, f"{where}.rotation", f"quaternion is not unit length (norm {norm:.6g})")
+    return q
+
+
+__all__ = ["QUATERNION_TOL", "get", "iter_json_array", "number_list", "read_json", "scan_table", "unit_quaternion"]

@@ -38,13 +38,12 @@ from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import CameraCapture, Frame, Rig, ring_pairs
 from ..rigfile import intrinsics_from_dict
-from .jsonio import get, number_list, read_json, scan_table
+from .jsonio import QUATERNION_TOL, get, number_list, read_json, scan_table, unit_quaternion
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
 REFERENCE = "CAM_FRONT"  # the camera whose timestamp and ego pose a frame takes
 LIDAR = "LIDAR_TOP"  # its sweeps (.pcd.bin) become the depth ground truth
 TABLES = ("scene", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
-QUATERNION_TOL = 1e-3  # |q| must be 1 within this; the rotation uses the normalised q
 
 # kept per camera sample_data row (a plain tuple: ~1.2M of them for trainval with sweeps)
 _TOKEN, _SAMPLE, _EGO, _CHANNEL, _CALIB, _TIME, _KEY, _FILE, _SIZE = range(9)
@@ -83,10 +82,7 @@ def _rows(path: Path) -> list[dict]:
 
 def _pose(row: dict, file: Path, where: str) -> np.ndarray:
     """4x4 transform from a row's `rotation` (w, x, y, z) and `translation`."""
-    q = number_list(row, "rotation", 4, file, where)
-    norm = float(np.linalg.norm(q))
-    if abs(norm - 1.0) > QUATERNION_TOL:
-        raise InputError(file, f"{where}.rotation", f"quaternion is not unit length (norm {norm:.6g})")
+    q = unit_quaternion(number_list(row, "rotation", 4, file, where), file, where)
     return make_transform(quaternion_to_rotation(q), number_list(row, "translation", 3, file, where))
 
 
@@ -97,6 +93,7 @@ def _poses(rows: list[tuple[str, dict]], file: Path) -> dict[str, np.ndarray]:
         t = np.array([r["translation"] for _, r in rows], dtype=np.float64)
         ok = q.shape == (len(rows), 4) and t.shape == (len(rows), 3)
         ok = ok and bool(np.isfinite(q).all() and np.isfinite(t).all())
+        ok = ok and bool(np.abs(q).max(initial=0.0) <= 2.0)  # larger entries: no unit q, and squares may overflow
         ok = ok and bool((np.abs(np.linalg.norm(q, axis=1) - 1.0) <= QUATERNION_TOL).all())
     except (KeyError, TypeError, ValueError):
         ok = False
