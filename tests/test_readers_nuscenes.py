@@ -307,6 +307,21 @@ def test_quaternion_and_intrinsic_defects(tmp_path: Path) -> None:
         load_rig(tmp_path)
 
 
+@pytest.mark.parametrize(("table", "column", "message"), [
+    ("ego_pose", "token", r"ego_pose.json: token: \['x'\] is not a string"),
+    ("sample_data", "ego_pose_token", r"sample_data.json: \[token=\w+\]: token/ego_pose_token has the wrong type"),
+])
+def test_a_token_that_is_not_a_string_is_named(table: str, column: str, message: str, tmp_path: Path) -> None:
+    write_tables(tmp_path, {"scene-0061": 2}, sweeps_between=0, images=False)
+    path = tmp_path / VERSION / f"{table}.json"
+    rows = json.loads(path.read_text())
+    for row in rows:  # every row: whichever the reader needs first
+        row[column] = ["x"]
+    path.write_text(json.dumps(rows))
+    with pytest.raises(InputError, match=message):
+        load_rig(tmp_path)
+
+
 def test_braces_in_strings_fall_back_to_the_exact_parser(tmp_path: Path) -> None:
     truth = write_tables(tmp_path, {"scene-0061": 2}, sweeps_between=1, images=False)
     fast = load_rig(tmp_path, sweeps=True)

@@ -218,6 +218,8 @@ class NuScenesTables:
                 raise _row_error(path, row, exc) from None
             if type(ts) is not int or type(w) is not int or type(h) is not int or type(filename) is not str:
                 raise InputError(path, f"[token={row['token']}]", "timestamp/width/height/filename has the wrong type")
+            if type(out[0]) is not str or type(out[2]) is not str:
+                raise InputError(path, f"[token={row['token']}]", "token/ego_pose_token has the wrong type")
             return out
 
         self._rows_by_scene: dict[str, list[tuple]] = defaultdict(list)
@@ -232,6 +234,8 @@ class NuScenesTables:
 
         def reduce(row: dict) -> tuple | None:
             token = row.get("token")
+            if type(token) is not str:
+                raise InputError(path, "token", f"{token!r} is not a string")
             return (token, row) if token in needed else None
 
         rows = scan_table(path, reduce, [(_TOKEN_RE, needed, True)])
