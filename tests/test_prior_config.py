@@ -163,7 +163,10 @@ OUT_OF_RANGE = [
     (["--speckle-window", "-1"], "speckle_window: must not be negative"),
     (["--lr-max-diff", "-1"], "lr_max_diff: must be positive"),
     (["--lr-max-diff", "0"], "lr_max_diff: must be positive"),
-    (["--min-zncc", "1"], "min_zncc: must be below 1"),
+    (["--min-zncc", "1"], "min_zncc: must be in [-1, 1)"),
+    (["--min-zncc", "-2"], "min_zncc: must be in [-1, 1)"),
+    (["--edge-jump-px", "-1"], "edge_jump_px: must not be negative"),
+    (["--matcher-input-scale", "0"], "matcher_input_scale: must be positive"),
     (["--max-abs-diff", "0"], "max_abs_diff: must be positive"),
     # the cache stores float16 depths: beyond 65504 m (or under 6.2e-5 m) a depth would be served clipped
     (["--max-depth", "1e9"], "max_depth: must be at most 65504 m"),
@@ -197,7 +200,7 @@ def test_range_limits_keep_the_defaults_and_the_usable_edge_values():
     edges = {"p1": 0, "p2": 1, "uniqueness": 0, "speckle_window": 0, "speckle_range": 0, "max_azimuth_deg": 89.9,
              "max_elevation_deg": 0.5, "margin_px": 1024, "border_px": 0, "normalize_sigma": 0.1,
              "lr_max_diff": 0.01, "confidence_disparity_px": 0.01, "min_zncc": -1.0, "max_abs_diff": 0.5,
-             "min_depth": 6.2e-5, "max_depth": 65504.0}
+             "min_depth": 6.2e-5, "max_depth": 65504.0, "edge_jump_px": 0.0, "matcher_input_scale": 1e-3}
     config = PriorConfig.from_settings(edges)
     assert all(config.get(name) == value for name, value in edges.items())
     for preset in PRESETS:

@@ -178,7 +178,10 @@ RANGES: dict[str, tuple[Callable[[float], bool], str]] = {
     # photometric factors (ncc - min_zncc) / (1 - min_zncc) and mad / max_abs_diff
     "lr_max_diff": (lambda v: v > 0, "must be positive (pixels)"),
     "confidence_disparity_px": (lambda v: v > 0, "must be positive (pixels)"),
-    "min_zncc": (lambda v: v < 1, "must be below 1"),
+    "min_zncc": (lambda v: -1 <= v < 1, "must be in [-1, 1) (a correlation)"),
+    "edge_jump_px": (lambda v: v >= 0, "must not be negative (0 = off)"),
+    # learned matchers see [0, 255] pixels times this: zero or negative gives them blank or inverted images
+    "matcher_input_scale": (lambda v: v > 0, "must be positive"),
     "max_abs_diff": (lambda v: v > 0, "must be positive (grey levels)"),
     "min_depth": (lambda v: v >= FLOAT16_MIN_POSITIVE,
                   f"must be at least {FLOAT16_MIN_POSITIVE:g} m (the cache stores float16 depths)"),
