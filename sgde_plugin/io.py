@@ -65,6 +65,21 @@ def make_folder(path: str | Path) -> Path:
 
 
 @contextmanager
+def output_folder(path: str | Path) -> Iterator[Path]:
+    """`make_folder` for a block that fills it: a folder the block created is removed again when the block
+    fails before writing anything into it (no empty output left behind a one-line error)."""
+    path = Path(path)
+    existed = path.exists()
+    folder = make_folder(path)
+    try:
+        yield folder
+    except BaseException:
+        if not existed and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
+
+
+@contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path; rename it onto `path` only if the block succeeds. A path that
     cannot be written (a folder, a read-only file system, a parent that is a file) is an InputError."""

@@ -76,3 +76,10 @@ def test_masks_cli_user_masks_win_and_prior_honours_them(tmp_path, capsys):
                  "--out", str(one)]) == 0
     assert main(["masks", str(one), "--out", str(tmp_path / "m1")]) == 2
     assert "at least 2" in capsys.readouterr().err
+    # a damaged image found during the work: one line, exit 2, and no (empty) --out folder left behind
+    victim = root / "frames" / rig.frames[0].id / f"{rig.camera_names[1]}.png"
+    victim.write_bytes(victim.read_bytes()[:300])
+    assert main(["masks", str(root), "--out", str(tmp_path / "m2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "truncated PNG" in err[0], err
+    assert not (tmp_path / "m2").exists()

@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     """Estimate (or take the user's) mask per camera, write them atomically, print a table."""
     import numpy as np
 
-    from ..io import make_folder, write_image
+    from ..io import output_folder, write_image
     from ..masks import MaskSettings, estimate_static_mask, rig_ground_maps, spread_frames
     from ..readers.detect import load_rig
 
@@ -34,21 +34,21 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.dir)
     if len(rig.frames) < 2:
         raise InputError(args.dir, "frames", f"has {len(rig.frames)} frame; a static mask needs at least 2")
-    out = make_folder(args.out)
     picked = [rig.frames[i].id for i in spread_frames(len(rig.frames), args.frames)]
     masks, rows = {}, []
     settings = MaskSettings()
-    for cam in rig.camera_names:
-        user = rig.load_mask(cam)
-        if user is not None:
-            masks[cam], source = user, "user"
-        else:
-            maps = None if args.no_ground else rig_ground_maps(rig, cam, picked, settings.max_ground_m)
-            masks[cam] = estimate_static_mask([rig.load_image(f, cam) for f in picked], settings, maps)
-            source = "estimated" if maps is None else "estimated, ground motion"
-        rows.append({"camera": cam, "source": source, "masked": float(1.0 - masks[cam].mean())})
-    for cam, mask in masks.items():
-        write_image(out / f"{cam}.png", np.where(mask, 255, 0).astype(np.uint8))
+    with output_folder(args.out) as out:  # made before the work: an unusable --out fails at once
+        for cam in rig.camera_names:
+            user = rig.load_mask(cam)
+            if user is not None:
+                masks[cam], source = user, "user"
+            else:
+                maps = None if args.no_ground else rig_ground_maps(rig, cam, picked, settings.max_ground_m)
+                masks[cam] = estimate_static_mask([rig.load_image(f, cam) for f in picked], settings, maps)
+                source = "estimated" if maps is None else "estimated, ground motion"
+            rows.append({"camera": cam, "source": source, "masked": float(1.0 - masks[cam].mean())})
+        for cam, mask in masks.items():
+            write_image(out / f"{cam}.png", np.where(mask, 255, 0).astype(np.uint8))
     print(f"{args.dir}: masks from {len(picked)} frames written to {out}")
     print(format_table(rows))
     return 0
