@@ -230,3 +230,44 @@ def test_mean_transform_of_rotations_about_one_axis_and_of_translations():
     two = mean_transform(np.stack([make_transform(rodrigues(axis * k * a), np.zeros(3)) for k in (1.0, 3.0)]))
     assert abs(rotation_angle_deg(two[:3, :3].T @ rodrigues(axis * 2 * a))) < 1e-6
     assert np.isclose(np.linalg.det(m[:3, :3]), 1.0) and np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0])
+
+
+def _json_paths(node: object, path: tuple = ()) -> list[tuple]:
+    """Every key path of a JSON document (lists: their first two items)."""
+    out = [path] if path else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _json_paths(v, (*path, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node[:2]):
+            out += _json_paths(v, (*path, i))
+    return out
+
+
+def test_every_key_of_rig_json_broken_every_way_is_one_line_or_valid(tmp_path: Path, capsys) -> None:
+    """Each key of a rig.json replaced by a wrong type, a huge or a NaN number, or deleted: `sgde validate`
+    either accepts the file (exit 0) or names the problem on one line (exit 2); never an internal error
+    (exit 1) or a warning (a second stderr line)."""
+    write_folder(tmp_path, make_rig(frames=1))
+    good = json.loads((tmp_path / "rig.json").read_text())
+    runs, refused = 0, 0
+    for path in _json_paths(good):
+        for value in (None, "x", [], {}, [[1, 2], [3]], True, -1, 1e308, float("nan"), "delete"):
+            if value == "delete" and isinstance(path[-1], int):
+                continue
+            doc = json.loads(json.dumps(good))
+            parent = doc
+            for key in path[:-1]:
+                parent = parent[key]
+            if value == "delete":
+                del parent[path[-1]]
+            else:
+                parent[path[-1]] = value
+            (tmp_path / "rig.json").write_text(json.dumps(doc))
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                code = main(["validate", str(tmp_path)])
+            err = capsys.readouterr().err.strip().splitlines()
+            assert code in (0, 2) and (code == 0 or len(err) == 1), (path, value, code, err)
+            runs, refused = runs + 1, refused + (code == 2)
+    assert runs > 500 and refused > 0.9 * runs  # nearly every change breaks the contract
