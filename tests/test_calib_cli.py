@@ -164,3 +164,6 @@ def test_the_table_says_how_each_window_was_taken():
     windows[-1]["confirms"] = {"window": 5, "timestamp_us": 0, "disagreement_sigmas": 1.2, "pair_weights": []}
     assert [r["rule"] for r in summary_rows({"windows": windows})] == [
         "-", "averaged", "partial+averaged", "partial", "less_precise", "unconfirmed", "confirms 5"]
+    assert {r["sigma_deg"] for r in summary_rows({"windows": windows})} == {None}  # a pair without one: "-"
+    windows[0]["pairs"] = [{**pair, "rotation_sigma_deg": 0.01234}]
+    assert summary_rows({"windows": windows[:1]})[0]["sigma_deg"] == "0.0123"

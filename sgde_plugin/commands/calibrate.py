@@ -105,6 +105,8 @@ def summary_rows(block: dict) -> list[dict]:
                 "inliers": p.get("inliers"),
                 "adjusted": p.get("adjusted_correspondences"),
                 "rms_px": p.get("rms_px"),
+                # how well the window's images determine the pair's relative rotation (the adjustment's 1-sigma)
+                "sigma_deg": None if p.get("rotation_sigma_deg") is None else f"{p['rotation_sigma_deg']:.4f}",
                 "accepted": w["accepted"],
                 "rule": w["rule"] or _accepted_as(w),
             })
