@@ -10,11 +10,13 @@ import dataclasses
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cache_fixtures import build, tiny_rig
+from test_readers_ddad import write_scene
 from test_rig import make_rig, write_folder
 
 from sgde_plugin.cache.dataset import PriorDataset
@@ -306,3 +308,65 @@ def test_eval_refuses_the_cache_of_another_scene(tmp_path, capsys):
     assert "no ground-truth depth" in _one_line(capsys)  # its own scene passes the check
     assert main(["eval", str(b), "--cache", str(tmp_path / "c")]) == 2
     assert "a: frames[000000]: was built from other images, poses or timestamps" in _one_line(capsys)
+
+
+def _json_paths(node: object, path: tuple = (), items: int = 2) -> list[tuple]:
+    """Every key path of a JSON document (lists: their first `items` items)."""
+    out = [path] if path else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _json_paths(v, (*path, k), items)
+    elif isinstance(node, list):
+        for i, v in enumerate(node[:items]):
+            out += _json_paths(v, (*path, i), items)
+    return out
+
+
+MUTATIONS = (None, "x", [], {}, [[1, 2], [3]], True, -1, 1e308, float("nan"), "delete")
+
+
+def _every_mutation_is_valid_or_one_line(folder: Path, file: Path, capsys, mutations: tuple = MUTATIONS,
+                                         items: int = 2) -> tuple[int, int]:
+    """Each key of the JSON `file` in `folder` (lists: their first `items` items) replaced by each of `mutations` in
+    turn: `sgde validate` accepts the folder (exit 0) or names the problem on one line (exit 2), never an internal
+    error (exit 1) or a warning (a second stderr line). Returns (runs, refused)."""
+    good = json.loads(file.read_text())
+    runs = refused = 0
+    for path in _json_paths(good, items=items):
+        for value in mutations:
+            if value == "delete" and isinstance(path[-1], int):
+                continue
+            doc = json.loads(json.dumps(good))
+            parent = doc
+            for key in path[:-1]:
+                parent = parent[key]
+            if value == "delete":
+                del parent[path[-1]]
+            else:
+                parent[path[-1]] = value
+            file.write_text(json.dumps(doc))
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                code = main(["validate", str(folder)])
+            err = capsys.readouterr().err.strip().splitlines()
+            assert code in (0, 2) and (code == 0 or len(err) == 1), (path, value, code, err)
+            runs, refused = runs + 1, refused + (code == 2)
+    file.write_text(json.dumps(good))
+    return runs, refused
+
+
+def test_every_key_of_rig_json_broken_every_way_is_one_line_or_valid(rig_dir, capsys):
+    runs, refused = _every_mutation_is_valid_or_one_line(rig_dir, rig_dir / "rig.json", capsys)
+    assert runs > 500 and refused > 0.9 * runs  # nearly every change breaks the contract
+
+
+def test_every_key_of_a_ddad_scene_broken_every_way_is_one_line_or_valid(tmp_path, capsys):
+    folder = tmp_path / "000000"
+    write_scene(folder, n=2)
+    few = (None, "x", [[1, 2], [3]], 1e308, "delete")  # each validate reads the scene's images: a smaller set
+    calibration = next((folder / "calibration").iterdir())
+    runs, refused = _every_mutation_is_valid_or_one_line(folder, calibration, capsys, few, items=1)
+    assert runs > 100 and refused > 0.8 * runs
+    scene = next(folder.glob("scene_*.json"))
+    runs, refused = _every_mutation_is_valid_or_one_line(folder, scene, capsys, few, items=1)
+    assert runs > 100 and refused > 0.5 * runs  # metadata keys the reader does not use may take any value

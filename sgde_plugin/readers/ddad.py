@@ -43,7 +43,7 @@ from ..geometry import invert_transform, make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
-from ..rigfile import intrinsics_from_dict
+from ..rigfile import MAX_MOUNT_M, MAX_WORLD_M, intrinsics_from_dict
 from .jsonio import get, read_json, unit_quaternion
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
@@ -98,13 +98,16 @@ def _num(row: dict, name: str, file: Path, where: str, default: float | None = 0
     return float(value)
 
 
-def _pose(row: object, file: Path, where: str, zero_is_identity: bool = False) -> np.ndarray:
-    """4x4 transform of a DGP `Pose` (translation {x, y, z}, rotation {qx, qy, qz, qw})."""
+def _pose(row: object, file: Path, where: str, zero_is_identity: bool = False, max_m: float = MAX_WORLD_M
+          ) -> np.ndarray:
+    """4x4 transform of a DGP `Pose` (translation {x, y, z} within `max_m`, rotation {qx, qy, qz, qw})."""
     if not isinstance(row, dict):
         raise InputError(file, where, "not a pose object")
     t = _field(row, "translation", file, where, dict, default={})
     r = _field(row, "rotation", file, where, dict, default={})
     trans = [_num(t, k, file, f"{where}.translation") for k in ("x", "y", "z")]
+    if max(map(abs, trans)) > max_m:  # checked per axis: the norm of such a vector may overflow
+        raise InputError(file, f"{where}.translation", f"is absurd (beyond {max_m:g} m)")
     q = np.array([_num(r, k, file, f"{where}.rotation") for k in ("qw", "qx", "qy", "qz")])
     q = unit_quaternion(q, file, where, zero_is_identity)
     return make_transform(quaternion_to_rotation(q), trans)
@@ -243,8 +246,9 @@ def _read_calibration(folder: Path, samples: _Samples, scene_path: Path) -> _Cal
         w = _field(image, "width", scene_path, f"data[key={key}].datum.image", int)
         h = _field(image, "height", scene_path, f"data[key={key}].datum.image", int)
         K = _intrinsics(intr[i], w, h, calib_path, f"intrinsics[{i}]")
-        cameras.append(Camera(cam, K, _pose(extr[i], calib_path, f"extrinsics[{i}]")))
-    lidar_mount = _pose(extr[index[LIDAR]], calib_path, f"extrinsics[{index[LIDAR]}]") if LIDAR in index else None
+        cameras.append(Camera(cam, K, _pose(extr[i], calib_path, f"extrinsics[{i}]", max_m=MAX_MOUNT_M)))
+    lidar_mount = (_pose(extr[index[LIDAR]], calib_path, f"extrinsics[{index[LIDAR]}]", max_m=MAX_MOUNT_M)
+                   if LIDAR in index else None)
     return _Calibration(tuple(cameras), lidar_mount)
 
 
