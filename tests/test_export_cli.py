@@ -128,3 +128,20 @@ def test_exported_file_runs_in_a_fresh_onnxruntime_process(tmp_path):
     assert got["loaded"] == [] and got["model"] == "bevdepth"
     assert got["shapes"] == [[18, 112, 2, 4], [18, 4, 2, 4]]
     assert max(got["diffs"].values()) < 1e-4
+
+
+def test_sizes_beyond_memory_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "big.onnx"
+    assert main(["export", "onnx", "--model", "r18", "--image-size", "100000x100000", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sides must be at most 4096 pixels" in err[0] and not out.exists()
+
+    def no_memory(*args, **kwargs):  # what torch's CPU allocator raises for a batch larger than the machine
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: you "
+                           "tried to allocate 240000000000 bytes")
+
+    monkeypatch.setattr("sgde_plugin.export.workflow.export_spec", no_memory)
+    assert main(["export", "onnx", "--model", "r18", "--image-size", "4096x4096", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--image-size: 4096x4096 does not fit in memory for the trace" in err[0], err
+    assert not out.exists()

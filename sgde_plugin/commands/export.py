@@ -11,6 +11,11 @@ from .options import integer
 HELP = "export the R18 depth net or the BEVDepth-style depth branch to ONNX (optionally checked)"
 
 
+# the export traces example inputs of this size (a batch of cameras): larger sides need tens of GB and are beyond any
+# camera input these nets are deployed at
+MAX_EXPORT_SIDE = 4096
+
+
 def _size(text: str) -> tuple[int, int]:
     try:
         h, w = (int(v) for v in text.lower().split("x"))
@@ -18,6 +23,8 @@ def _size(text: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"expected HxW, e.g. 384x640, got {text!r}") from None
     if h <= 0 or w <= 0:
         raise argparse.ArgumentTypeError(f"size must be positive, got {text!r}")
+    if max(h, w) > MAX_EXPORT_SIDE:
+        raise argparse.ArgumentTypeError(f"sides must be at most {MAX_EXPORT_SIDE} pixels, got {text!r}")
     return h, w
 
 
@@ -69,6 +76,11 @@ def run(args: argparse.Namespace) -> int:
     except ParityError as exc:
         print(f"sgde export: refused, nothing written to {args.out}: {exc}", file=sys.stderr)
         return 1
+    except RuntimeError as exc:  # torch's allocator: the traced example batch is larger than this machine's memory
+        if "allocate" not in str(exc):
+            raise
+        size = "the default size" if args.image_size is None else "x".join(map(str, args.image_size))
+        raise InputError(None, "--image-size", f"{size} does not fit in memory for the trace; nothing written") from None
     precision = "fp16" if args.fp16 else "fp32"
     print(f"wrote {report['path']} ({report['bytes'] / 2**20:.1f} MiB, {precision}, opset {args.opset})")
     print(f"  inputs:  {', '.join(spec.input_names)}")
