@@ -80,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         if "allocate" not in str(exc):
             raise
         size = "the default size" if args.image_size is None else "x".join(map(str, args.image_size))
-        raise InputError(None, "--image-size", f"{size} does not fit in memory for the trace; nothing written") from None
+        problem = f"{size} does not fit in memory for the trace; nothing written"
+        raise InputError(None, "--image-size", problem) from None
     precision = "fp16" if args.fp16 else "fp32"
     print(f"wrote {report['path']} ({report['bytes'] / 2**20:.1f} MiB, {precision}, opset {args.opset})")
     print(f"  inputs:  {', '.join(spec.input_names)}")
