@@ -100,5 +100,15 @@ def test_calib_and_poses_files(tmp_path):
         read_kitti_calib(tmp_path / "no_tr.txt")
     with pytest.raises(InputError, match="cannot read"):
         read_kitti_calib(tmp_path / "absent.txt")
+    # NaN, infinity or absurd values were read as numbers and made NaN poses
+    (tmp_path / "nan.txt").write_text(lines[2] + "\nTr: nan" + " 0" * 11 + "\n")
+    with pytest.raises(InputError, match=r"nan.txt: Tr: contains NaN or infinity"):
+        read_kitti_calib(tmp_path / "nan.txt")
+    (tmp_path / "inf_poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 inf 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match=r"inf_poses.txt: line 2: contains NaN or infinity"):
+        read_kitti_poses(tmp_path / "inf_poses.txt", calib["Tr"])
+    (tmp_path / "huge_poses.txt").write_text("1 0 0 1e308 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(InputError, match=r"huge_poses.txt: line 1: has a value beyond 1e\+08"):
+        read_kitti_poses(tmp_path / "huge_poses.txt", calib["Tr"])
     with pytest.raises(ValueError, match="rectified pinhole"):
         projection_offset(np.c_[np.ones((3, 3)), np.zeros(3)])

@@ -30,9 +30,18 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..errors import InputError
 from ..geometry import invert_transform, make_transform
+from ..rigfile import MAX_WORLD_M
 
 CONVENTIONS = ("exact", "voxformer")
 KITTI_LIDAR_HEIGHT_M = 1.73  # Velodyne above the road on the KITTI car
+
+
+def _check_finite(values: np.ndarray, path: Path, where: str) -> None:
+    """InputError for NaN, infinity or a value beyond MAX_WORLD_M (no calibration or pose entry is that large)."""
+    if not np.all(np.isfinite(values)):
+        raise InputError(path, where, "contains NaN or infinity")
+    if np.abs(values).max(initial=0.0) > MAX_WORLD_M:
+        raise InputError(path, where, f"has a value beyond {MAX_WORLD_M:g}")
 
 
 def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
@@ -54,6 +63,7 @@ def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
             values = np.array([float(v) for v in value.split()])
         except ValueError:
             raise InputError(path, key, "values are not numbers") from None
+        _check_finite(values, path, key)
         if key in ("P0", "P1", "P2", "P3", "Tr"):
             if values.size != 12:
                 raise InputError(path, key, f"has {values.size} values, expected 12 (3x4 row-major)")
@@ -109,5 +119,6 @@ def read_kitti_poses(path: str | Path, Tr: np.ndarray) -> np.ndarray:
             poses[i, :3] = np.array([float(v) for v in row]).reshape(3, 4)
         except ValueError:
             raise InputError(path, f"line {i + 1}", "values are not numbers") from None
+        _check_finite(poses[i], path, f"line {i + 1}")
     Tr = np.asarray(Tr, dtype=np.float64)
     return invert_transform(Tr) @ poses @ Tr
