@@ -16,6 +16,13 @@ def rotation_error(R: np.ndarray) -> float:
     return float(np.abs(R.T @ R - np.eye(3)).max())
 
 
+def vector_norm(v: np.ndarray) -> float:
+    """Euclidean norm of a finite vector, scaled first so that huge entries (1e308) do not overflow."""
+    v = np.asarray(v, dtype=np.float64).reshape(-1)
+    big = float(np.abs(v).max(initial=0.0))
+    return float(np.linalg.norm(v / big)) * big if big > 0 else 0.0
+
+
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Homogeneous transform(s) (..., 4, 4) from rotation(s) (..., 3, 3) and translation(s) (..., 3)."""
     R = np.asarray(R, dtype=np.float64)

@@ -6,11 +6,13 @@ lives in `sgde_plugin.cameras`, the rig document itself in `sgde_plugin.rig`.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from .cameras import MODELS, CameraModel, KannalaBrandt, Ocam, Pinhole
 from .errors import InputError
-from .geometry import ORTHONORMAL_TOL, rotation_error
+from .geometry import ORTHONORMAL_TOL, rotation_error, vector_norm
 
 MAX_MOUNT_M = 1e3  # a camera mounted farther than this from the ego origin is a unit or typing error
 MAX_WORLD_M = 1e8  # ego positions beyond this are not on Earth (UTM-sized coordinates are ~1e7 m)
@@ -131,11 +133,16 @@ def transform_field(entry: dict, key: str, where: str, required: bool = True,
     err = rotation_error(T[:3, :3])
     if err > ORTHONORMAL_TOL:
         raise InputError(None, f"{where}.{key}", f"rotation is not orthonormal (error {err:.2g} > 1e-6)")
-    if np.linalg.norm(T[:3, 3]) > max_m:
-        raise InputError(None, f"{where}.{key}", f"translation of {np.linalg.norm(T[:3, 3]):.3g} m is absurd "
-                         f"(more than {max_m:g} m)")
+    check_translation(T[:3, 3], None, f"{where}.{key}", max_m)
     return T
 
 
-__all__ = ["MAX_IMAGE_SIDE", "MAX_MOUNT_M", "MAX_PIXELS", "MAX_WORLD_M", "intrinsics_from_dict", "matrix_field",
-           "transform_field", "vector_field"]
+def check_translation(t: np.ndarray, file: Path | str | None, where: str, max_m: float) -> None:
+    """InputError naming `where` when the translation `t` is farther than `max_m` metres."""
+    norm = vector_norm(t)
+    if norm > max_m:
+        raise InputError(file, where, f"translation of {norm:.3g} m is absurd (more than {max_m:g} m)")
+
+
+__all__ = ["MAX_IMAGE_SIDE", "MAX_MOUNT_M", "MAX_PIXELS", "MAX_WORLD_M", "check_translation", "intrinsics_from_dict",
+           "matrix_field", "transform_field", "vector_field"]

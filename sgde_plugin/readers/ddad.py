@@ -43,7 +43,7 @@ from ..geometry import invert_transform, make_transform, quaternion_to_rotation
 from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import Frame, Rig, own_captures, ring_pairs, ring_subset_pairs
-from ..rigfile import MAX_MOUNT_M, MAX_WORLD_M, intrinsics_from_dict
+from ..rigfile import MAX_MOUNT_M, MAX_WORLD_M, check_translation, intrinsics_from_dict
 from .jsonio import get, read_json, unit_quaternion
 
 RING = ("CAMERA_01", "CAMERA_06", "CAMERA_08", "CAMERA_09", "CAMERA_07", "CAMERA_05")
@@ -106,8 +106,7 @@ def _pose(row: object, file: Path, where: str, zero_is_identity: bool = False, m
     t = _field(row, "translation", file, where, dict, default={})
     r = _field(row, "rotation", file, where, dict, default={})
     trans = [_num(t, k, file, f"{where}.translation") for k in ("x", "y", "z")]
-    if max(map(abs, trans)) > max_m:  # checked per axis: the norm of such a vector may overflow
-        raise InputError(file, f"{where}.translation", f"is absurd (beyond {max_m:g} m)")
+    check_translation(np.array(trans), file, f"{where}.translation", max_m)
     q = np.array([_num(r, k, file, f"{where}.rotation") for k in ("qw", "qx", "qy", "qz")])
     q = unit_quaternion(q, file, where, zero_is_identity)
     return make_transform(quaternion_to_rotation(q), trans)

@@ -12,6 +12,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from ..errors import InputError
+from ..geometry import vector_norm
 
 QUATERNION_TOL = 1e-3  # |q| must be 1 within this; the rotation uses the normalised q
 
@@ -234,8 +235,7 @@ def number_list(row: dict, key: str, length: int, file: Path | str | None, where
 def unit_quaternion(q: np.ndarray, file: Path | str | None, where: str, zero_is_identity: bool = False
                     ) -> np.ndarray:
     """q (w, x, y, z) when its length is 1 within QUATERNION_TOL (a zero q as the identity when allowed)."""
-    big = float(np.abs(q).max(initial=0.0))
-    norm = float(np.linalg.norm(q / big)) * big if big > 0 else 0.0  # scaled first: huge entries do not overflow
+    norm = vector_norm(q)
     if norm == 0.0 and zero_is_identity:
         return np.array([1.0, 0.0, 0.0, 0.0])
     if abs(norm - 1.0) > QUATERNION_TOL:
