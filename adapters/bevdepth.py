@@ -28,7 +28,7 @@ from sgde_plugin.errors import InputError
 
 from .camera_aware import ASPP, CAMERA_PARAMS, Mlp, SELayer, camera_params
 from .depth_bins import D_BOUND, depth_bce_loss, depth_bin_labels, num_depth_bins
-from .prior_features import PriorFeatureEncoder
+from .prior_features import PriorFeatureEncoder, check_prior_fits
 from .prior_path import PriorFeed, keep_missing_prior_path
 
 DEPTH_LOSS_WEIGHT = 3.0  # BEVDepth's factor on the depth BCE
@@ -205,6 +205,8 @@ class PriorDepthNet(nn.Module):
         """
         if prior is None:
             prior = self.prior_feed.next_prior(mats_dict)
+        if prior is not None and self.prior_encoder is not None:
+            check_prior_fits(prior, x, self.prior_encoder.downsample)
         mlp_input = self.bn(camera_params(mats_dict))
         x = self.reduce_conv(x)
         context = self.context_conv(self.context_se(x, self.context_mlp(mlp_input)[..., None, None]))
@@ -269,6 +271,7 @@ class PriorInjector(nn.Module):
 
     def shift(self, x: Tensor, prior: Tensor) -> Tensor:
         """``x`` [B*N, C, h, w] or [B, N, C, h, w] plus the encoded prior [B, N, H, W] (0 where none)."""
+        check_prior_fits(prior, x, self.encoder.downsample)
         return x + self.encoder(prior).reshape(x.shape).to(x.dtype)
 
     def pre_forward(self, module: nn.Module, args: tuple, kwargs: dict) -> tuple[tuple, dict]:

@@ -23,6 +23,21 @@ def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
     return min_pool_nonzero_torch(depth, stride)
 
 
+def check_prior_fits(prior: object, features: Tensor, stride: int) -> None:
+    """Raise one ValueError naming both shapes unless ``prior`` ([B, N, H, W] or [B*N, 1, H, W] metres) lies on
+    ``features`` ([B*N, C, h, w] or [B, N, C, h, w]) at ``stride``: B*N images, H = h * stride, W = w * stride."""
+    if not isinstance(prior, Tensor):
+        raise TypeError(f"prior must be a torch.Tensor of metres, got {type(prior).__name__}")
+    p, f = list(prior.shape), list(features.shape)
+    if prior.dim() != 4:
+        raise ValueError(f"prior must be [B, N, H, W] or [B*N, 1, H, W], got {p}")
+    images = p[0] if p[1] == 1 else p[0] * p[1]
+    feature_images = f[0] * f[1] if features.dim() == 5 else f[0]
+    if images != feature_images or p[-2:] != [f[-2] * stride, f[-1] * stride]:
+        raise ValueError(f"prior {p} does not fit the features {f}: expected {feature_images} images of "
+                         f"{f[-2] * stride}x{f[-1] * stride} (the features' size x the stride {stride})")
+
+
 class PriorFeatureEncoder(nn.Module):
     """Metric prior at image size -> features at the feature stride, to be added to a feature map.
 

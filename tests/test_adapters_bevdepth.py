@@ -284,3 +284,19 @@ def test_a_prior_of_the_wrong_rank_in_mats_dict_is_refused_naming_the_key():
     mats = _mats(1, 2) | {PRIOR_KEY: torch.zeros(2, 32, 48)}
     with pytest.raises(ValueError, match=r"sgde_prior must be \[B, S, N, H, W\] or \[B, N, H, W\], got \[2, 32, 48\]"):
         net(torch.randn(2, 4, 2, 3), mats)
+
+
+def test_a_prior_that_does_not_lie_on_the_features_is_refused_naming_both_shapes():
+    net = PriorDepthNet(4, 8, 2, 112).eval()
+    x, mats = torch.randn(2, 4, 2, 3), _mats(1, 2)  # one sample of two cameras, features 2x3 at stride 16
+    assert net(x, mats, prior=torch.zeros(1, 2, 32, 48)).shape == (2, 114, 2, 3)
+    expected = r"does not fit the features \[2, 4, 2, 3\]: expected 2 images of 32x48"
+    for bad in (torch.zeros(1, 3, 32, 48), torch.zeros(1, 2, 16, 48), torch.zeros(3, 1, 32, 48),
+                torch.zeros(1, 2, 32, 64)):  # another camera count, height, batch, a width that still pools
+        with pytest.raises(ValueError, match=rf"prior \[{', '.join(map(str, bad.shape))}\] {expected}"):
+            net(x, mats, prior=bad)
+    with pytest.raises(TypeError, match="prior must be a torch.Tensor of metres, got list"):
+        net(x, mats, prior=[[0.0]])
+    user = inject_prior(_UserDepthNet(), in_channels=8, downsample=4)
+    with pytest.raises(ValueError, match=r"prior \[2, 1, 12, 16\] does not fit the features \[2, 8, 3, 5\]"):
+        user(torch.randn(2, 8, 3, 5), {"bias": torch.tensor(0.5)}, prior=torch.zeros(2, 1, 12, 16))
