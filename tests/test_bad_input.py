@@ -280,6 +280,12 @@ def test_api_misuse_of_sizes_is_a_clear_error(tmp_path):
         PriorCache(tmp_path / "c").get("000000", "A", size=(0, 0))
     with pytest.raises(ValueError, match="size must be two positive integers"):
         PriorDataset(rig, tmp_path / "c", size=(0, 0))
+    cache = PriorCache(tmp_path / "c")
+    for bad in (float("nan"), -0.1, 1.5, "0.5", None):  # NaN read as "no threshold" and served every value
+        with pytest.raises(ValueError, match=r"min_confidence must be a number in \[0, 1\], got"):
+            cache.get("000000", "A", min_confidence=bad)
+    depth, _ = cache.get("000000", "A")
+    assert np.array_equal(cache.get("000000", "A", min_confidence=np.float32(0.0))[0], depth) and depth.any()
 
 
 def test_a_closed_pipe_ends_quietly(rig_dir):

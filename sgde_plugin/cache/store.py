@@ -27,6 +27,7 @@ chunks, below `PriorCache`). Their names are re-exported here.
 
 from __future__ import annotations
 
+import numbers
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -219,6 +220,8 @@ class PriorCache:
         inventing depths (min-pool of valid values, then nearest). A missing or corrupted chunk raises
         InputError naming the scene, frame and camera. With `min_confidence` > 0 only values whose
         stored confidence (steps of 1/255) rounds to at least it are kept (the rest read as no value)."""
+        if not isinstance(min_confidence, numbers.Real) or not 0.0 <= min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be a number in [0, 1], got {min_confidence!r}")
         if min_confidence > 0:
             depth, _, conf = self.get_prior(frame_id, camera, size)
             depth = np.where(conf >= np.float32(min_confidence - 0.5 / 255), depth, 0).astype(np.float32)
