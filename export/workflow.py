@@ -18,6 +18,18 @@ from .parity import FP16_TOLERANCE, FP32_TOLERANCE, ParityResult, check_parity
 TRACE_BATCH = 2  # batch of the example inputs; checks run at 1 and 6 to prove the batch axis is dynamic
 CHECK_BATCHES = (1, 6)
 
+# Peak resident memory of `sgde export onnx` as (bytes, bytes per megapixel of the example images: one image for
+# r18, all cameras for bevdepth), fitted from above to /usr/bin/time's maximum RSS (session 27, torch 2.14.1 on the
+# CPU, fp32). r18: 1.16 / 1.90 / 4.55 / 15.72 GB at 0.25 / 1.05 / 4.19 / 16.8 Mpx, with --check 1.93 / 4.69 / 16.67
+# GB at the first three; bevdepth (6 cameras): 1.49 / 3.53 / 9.00 GB at 1.08 / 8.65 / 25.2 Mpx, with --check
+# 3.05 / 17.78 GB at the first two (the check runs batch 6 in torch and onnxruntime).
+PEAK_BYTES = {
+    ("r18", False): (1.0e9, 0.9e9),
+    ("r18", True): (1.2e9, 3.9e9),
+    ("bevdepth", False): (1.2e9, 0.32e9),
+    ("bevdepth", True): (1.0e9, 2.0e9),
+}
+
 
 def parity_cases(spec: ExportSpec, batches: tuple[int, ...] = CHECK_BATCHES) -> list[tuple[str, int, list[Tensor]]]:
     """Seeded random inputs and a synthetic frame at each batch size (plus another image size for r18).
@@ -45,6 +57,14 @@ def _random_image_and_prior(batch: int, size: tuple[int, int]) -> list[Tensor]:
     prior = torch.where(torch.rand(batch, 1, h, w, generator=g) < 0.3,
                         1.0 + 60.0 * torch.rand(batch, 1, h, w, generator=g), torch.zeros(batch, 1, h, w))
     return [image, prior]
+
+
+def estimated_peak_bytes(spec: ExportSpec, check: bool) -> int:
+    """Peak memory that exporting ``spec`` (and, with ``check``, proving it) is expected to take."""
+    h, w = spec.extra["image_size"]
+    megapixels = h * w * spec.extra.get("cams", 1) / 1e6
+    base, per_megapixel = PEAK_BYTES[(spec.name, check)]
+    return int(base + per_megapixel * megapixels)
 
 
 def export_spec(

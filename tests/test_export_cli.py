@@ -141,7 +141,42 @@ def test_sizes_beyond_memory_are_one_line_and_write_nothing(tmp_path, capsys, mo
                            "tried to allocate 240000000000 bytes")
 
     monkeypatch.setattr("sgde_plugin.export.workflow.export_spec", no_memory)
+    monkeypatch.setattr("sgde_plugin.cache.build.available_memory", lambda: 10**15)  # past the estimate
     assert main(["export", "onnx", "--model", "r18", "--image-size", "4096x4096", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--image-size: 4096x4096 does not fit in memory for the trace" in err[0], err
     assert not out.exists()
+
+
+def test_an_export_larger_than_free_memory_is_refused_before_it_starts(tmp_path, capsys, monkeypatch):
+    from sgde_plugin.export.models import build_bevdepth, build_r18
+    from sgde_plugin.export.workflow import estimated_peak_bytes
+
+    # the estimate grows with the pixels, the cameras and the check; the default sizes need 1-2 GB (measured 1.16
+    # GB for r18 and 1.49 GB for bevdepth's 6 cameras; 1.93 and 3.05 GB with --check)
+    r18, big = build_r18(), build_r18(image_size=(2048, 2048))
+    assert 1.0e9 < estimated_peak_bytes(r18, False) < 1.4e9 < estimated_peak_bytes(r18, True) < 2.4e9
+    assert estimated_peak_bytes(big, True) > 3 * estimated_peak_bytes(big, False)
+    six, twelve = build_bevdepth(), build_bevdepth(cams=12)
+    assert 1.2e9 < estimated_peak_bytes(six, False) < 1.8e9 and 2.5e9 < estimated_peak_bytes(six, True) < 3.6e9
+    assert estimated_peak_bytes(twelve, False) > estimated_peak_bytes(six, False)
+
+    called = []
+    def fake_export(spec, path, **kwargs):
+        called.append(path)
+        return {"path": str(path), "bytes": 0, "parity": []}
+
+    monkeypatch.setattr("sgde_plugin.export.workflow.export_spec", fake_export)
+    monkeypatch.setattr("sgde_plugin.cache.build.available_memory", lambda: 2 * 10**9)
+    out = tmp_path / "big.onnx"
+    args = ["export", "onnx", "--model", "bevdepth", "--image-size", "1024x1408", "--cams", "12", "--out", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--image-size: 1024x1408 x 12 cameras needs about 6.7 GB for the export, 2.0 GB is " \
+        "available; nothing written" in err[0], err
+    assert main(["export", "onnx", "--model", "r18", "--check", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the default size needs about 2.2 GB for the export and --check" in err[0], err
+    assert not called and not out.exists()
+    monkeypatch.setattr("sgde_plugin.cache.build.available_memory", lambda: None)  # unknown: not refused
+    assert main(["export", "onnx", "--model", "r18", "--out", str(out)]) == 0 and called == [str(out)]

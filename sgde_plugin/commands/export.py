@@ -56,6 +56,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--opset", type=integer(17, 10**6), default=17, help="ONNX opset (>= 17)")
 
 
+def _size_text(args: argparse.Namespace) -> str:
+    """The image size as the user gave it (or the model's default), with the cameras for bevdepth."""
+    size = "the default size" if args.image_size is None else "x".join(map(str, args.image_size))
+    return f"{size} x {args.cams} cameras" if args.model == "bevdepth" else size
+
+
+def _check_memory(spec, args: argparse.Namespace) -> None:
+    """Refuse, before any tensor is made, an export this machine's free memory cannot hold (the kernel would kill it)."""
+    from ..cache.build import available_memory
+    from ..export.workflow import estimated_peak_bytes
+
+    need, have = estimated_peak_bytes(spec, args.check), available_memory()
+    if have is not None and need > have:
+        what = "the export and --check" if args.check else "the export"
+        raise InputError(None, "--image-size", f"{_size_text(args)} needs about {need / 1e9:.1f} GB for {what}, "
+                         f"{have / 1e9:.1f} GB is available; nothing written")
+
+
 def run(args: argparse.Namespace) -> int:
     """Build the model, export it, check it when asked, print a summary."""
     from ..export.models import BUILDERS
@@ -71,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     if args.model == "bevdepth":
         kwargs["cams"] = args.cams
     spec = BUILDERS[args.model](args.checkpoint, **kwargs)
+    _check_memory(spec, args)
     try:
         report = export_spec(spec, args.out, check=args.check, fp16=args.fp16, opset=args.opset)
     except ParityError as exc:
@@ -79,8 +98,7 @@ def run(args: argparse.Namespace) -> int:
     except RuntimeError as exc:  # torch's allocator: the traced example batch is larger than this machine's memory
         if "allocate" not in str(exc):
             raise
-        size = "the default size" if args.image_size is None else "x".join(map(str, args.image_size))
-        problem = f"{size} does not fit in memory for the trace; nothing written"
+        problem = f"{_size_text(args)} does not fit in memory for the trace; nothing written"
         raise InputError(None, "--image-size", problem) from None
     precision = "fp16" if args.fp16 else "fp32"
     print(f"wrote {report['path']} ({report['bytes'] / 2**20:.1f} MiB, {precision}, opset {args.opset})")
