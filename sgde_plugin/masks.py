@@ -31,7 +31,7 @@ import numpy as np
 from .cameras import Camera
 from .errors import InputError
 from .geometry import invert_transform, transform_points
-from .rig import Rig
+from .rig import Rig, check_image_file
 
 WORK_WIDTH = 384  # estimation runs at about this width; the mask is scaled back up
 
@@ -285,4 +285,6 @@ def attach_masks(rig: Rig, folder: str | Path) -> Rig:
     if not folder.is_dir():
         raise InputError(folder, None, "mask folder not found")
     found = {c: folder / f"{c}.png" for c in rig.camera_names if (folder / f"{c}.png").is_file()}
+    for camera, path in found.items():
+        check_image_file(path, rig.camera(camera))  # a mask of another size would be read at the wrong pixels
     return replace(rig, masks={**found, **dict(rig.masks)})

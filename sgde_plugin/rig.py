@@ -442,14 +442,14 @@ def check_folder_files(rig: Rig) -> None:
             path = fr.images.get(cam.name)
             if path is None:
                 raise InputError(rig.root / "frames" / fr.id, cam.name, "image missing")
-            _check_file(path, cam, depth=False)
+            check_image_file(path, cam, depth=False)
             if cam.name in fr.depths:
-                _check_file(fr.depths[cam.name], cam, depth=True)
+                check_image_file(fr.depths[cam.name], cam, depth=True)
     for name, path in rig.masks.items():
-        _check_file(path, rig.camera(name))
+        check_image_file(path, rig.camera(name))
 
 
-def _check_file(path: Path, cam: Camera, depth: bool | None = None) -> None:
+def check_image_file(path: Path, cam: Camera, depth: bool | None = None) -> None:
     """The file's size is the camera's; with `depth` False / True its pixels are an image's / a depth PNG's (one
     header read)."""
     header = image_header(path)

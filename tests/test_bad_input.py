@@ -376,3 +376,19 @@ def test_every_key_of_a_ddad_scene_broken_every_way_is_one_line_or_valid(tmp_pat
     scene = next(folder.glob("scene_*.json"))
     runs, refused = _every_mutation_is_valid_or_one_line(folder, scene, capsys, few, items=1)
     assert runs > 100 and refused > 0.5 * runs  # metadata keys the reader does not use may take any value
+
+
+@pytest.mark.parametrize("command", ["calibrate", "prior"])
+def test_a_mask_folder_with_a_mask_of_another_size_is_one_line(rig_dir, tmp_path, capsys, command):
+    from sgde_plugin.io import write_image
+    from sgde_plugin.rig import read_rig_folder
+
+    cam = read_rig_folder(rig_dir).cameras[0]
+    masks = tmp_path / "masks"
+    write_image(masks / f"{cam.name}.png", np.full((cam.height // 2, cam.width), 255, np.uint8))  # read at wrong pixels
+    out = tmp_path / ("out.json" if command == "calibrate" else "cache")
+    assert main([command, str(rig_dir), "--out", str(out), "--masks", str(masks)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{cam.name}.png: size: image is {cam.width}x{cam.height // 2}, camera {cam.name} is " \
+        f"{cam.width}x{cam.height}" in err[0], err
+    assert not out.exists()
