@@ -157,6 +157,7 @@ def test_an_export_larger_than_free_memory_is_refused_before_it_starts(tmp_path,
     r18, big = build_r18(), build_r18(image_size=(2048, 2048))
     assert 1.0e9 < estimated_peak_bytes(r18, False) < 1.4e9 < estimated_peak_bytes(r18, True) < 2.4e9
     assert estimated_peak_bytes(big, True) > 3 * estimated_peak_bytes(big, False)
+    assert estimated_peak_bytes(r18, False, fp16=True) > estimated_peak_bytes(r18, False)
     six, twelve = build_bevdepth(), build_bevdepth(cams=12)
     assert 1.2e9 < estimated_peak_bytes(six, False) < 1.8e9 and 2.5e9 < estimated_peak_bytes(six, True) < 3.6e9
     assert estimated_peak_bytes(twelve, False) > estimated_peak_bytes(six, False)

@@ -67,7 +67,7 @@ def _check_memory(spec, args: argparse.Namespace) -> None:
     from ..cache.build import available_memory
     from ..export.workflow import estimated_peak_bytes
 
-    need, have = estimated_peak_bytes(spec, args.check), available_memory()
+    need, have = estimated_peak_bytes(spec, args.check, args.fp16), available_memory()
     if have is not None and need > have:
         what = "the export and --check" if args.check else "the export"
         raise InputError(None, "--image-size", f"{_size_text(args)} needs about {need / 1e9:.1f} GB for {what}, "
