@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
 from .options import integer
+
+if TYPE_CHECKING:
+    from ..export.models import ExportSpec
 
 HELP = "export the R18 depth net or the BEVDepth-style depth branch to ONNX (optionally checked)"
 
@@ -62,8 +66,8 @@ def _size_text(args: argparse.Namespace) -> str:
     return f"{size} x {args.cams} cameras" if args.model == "bevdepth" else size
 
 
-def _check_memory(spec, args: argparse.Namespace) -> None:
-    """Refuse, before any tensor is made, an export this machine's free memory cannot hold (the kernel would kill it)."""
+def _check_memory(spec: ExportSpec, args: argparse.Namespace) -> None:
+    """Refuse, before any tensor is made, an export the free memory cannot hold (the kernel would kill it)."""
     from ..cache.build import available_memory
     from ..export.workflow import estimated_peak_bytes
 
