@@ -122,6 +122,23 @@ def load_query_net(path: str | Path, module: nn.Module | None = None) -> nn.Modu
     return net.eval()
 
 
+def _check_inputs(depth: object, sensor_to_ego: object, **maps: object) -> None:
+    """One clear error for inputs of the wrong kind (TypeError) or shape (ValueError): depth [B, N, H, W], each map
+    in ``maps`` None or of the depth's shape, ``sensor_to_ego`` [B, N, 4, 4] or [N, 4, 4]."""
+    for name, value in {"depth": depth, "sensor_to_ego": sensor_to_ego, **maps}.items():
+        if value is not None and not isinstance(value, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    assert isinstance(depth, Tensor) and isinstance(sensor_to_ego, Tensor)
+    if depth.dim() != 4:
+        raise ValueError(f"depth must be [B, N, H, W] metres, got shape {list(depth.shape)}")
+    for name, value in maps.items():
+        if isinstance(value, Tensor) and value.shape != depth.shape:
+            raise ValueError(f"{name} must have the depth's shape {list(depth.shape)}, got {list(value.shape)}")
+    b, n = depth.shape[:2]
+    if list(sensor_to_ego.shape) not in ([b, n, 4, 4], [n, 4, 4]):
+        raise ValueError(f"sensor_to_ego must be [{b}, {n}, 4, 4] or [{n}, 4, 4], got {list(sensor_to_ego.shape)}")
+
+
 class DepthToVoxelProposals(nn.Module):
     """Rig depth [B, N, H, W] -> pseudo points, ``occupancy`` [B, X, Y, Z], coarse occupancy or proposals.
 
@@ -203,6 +220,7 @@ class DepthToVoxelProposals(nn.Module):
         [B, X, Y, Z] in {0, 1}, ``coarse_occupancy`` [B, X/s, Y/s, Z/s] (a coarse voxel holding any
         occupied one) and, with a ``query_net``, ``proposals`` [B, X/2, Y/2, Z/2].
         """
+        _check_inputs(depth, sensor_to_ego, prior=prior, confidence=confidence)
         fused = fuse_depth_with_prior(depth, prior, confidence, self.confidence_threshold)
         ego, ok = self.points(fused, cameras, sensor_to_ego)
         b = depth.shape[0]

@@ -131,6 +131,28 @@ def test_prior_replaces_depth_only_where_confident():
     assert sorted(i[0] for i in _occupied(out["occupancy"][0])) == [40, 50, 100, 100]
 
 
+def test_inputs_of_the_wrong_kind_or_shape_are_one_clear_error():
+    cam = Camera("c", Pinhole(4, 2, np.array([[8.0, 0, 2.0], [0, 8.0, 1.0], [0, 0, 1]])),
+                 camera_mount(0.0, np.array([0.0, 0.0, 1.0])))
+    stage1 = DepthToVoxelProposals(rig_frame="lidar")
+    depth, pose = torch.full((1, 1, 2, 4), 10.0), torch.from_numpy(cam.sensor_to_ego)[None, None]
+    assert stage1(depth, [cam.intrinsics], pose)["occupancy"].sum() > 0
+    bad = [  # before: an unpacking error, torch size errors, an IndexError, a TypeError from torch.arange
+        ((depth[0], [cam.intrinsics], pose), {}, ValueError,
+         r"depth must be \[B, N, H, W\] metres, got shape \[1, 2, 4\]"),
+        ((depth, [cam.intrinsics], pose), {"prior": torch.zeros(1, 1, 2, 2)}, ValueError,
+         r"prior must have the depth's shape \[1, 1, 2, 4\], got \[1, 1, 2, 2\]"),
+        ((depth, [cam.intrinsics], pose), {"confidence": [[1.0]]}, TypeError,
+         "confidence must be a torch.Tensor, got list"),
+        ((depth, [cam.intrinsics], pose[..., :3, :3]), {}, ValueError,
+         r"sensor_to_ego must be \[1, 1, 4, 4\] or \[1, 4, 4\], got \[1, 1, 3, 3\]"),
+        ((depth.numpy(), [cam.intrinsics], pose), {}, TypeError, "depth must be a torch.Tensor, got ndarray"),
+    ]
+    for args, kwargs, kind, message in bad:
+        with pytest.raises(kind, match=message):
+            stage1(*args, **kwargs)
+
+
 def test_proposal_depth_loss_by_hand():
     pred = torch.tensor([[[[10.0, 12.0], [5.0, 7.0]]]])
     gt = torch.tensor([[[[11.0, 0.0], [5.5, 0.0]]]])
