@@ -35,6 +35,21 @@ def test_cameras_fold_into_batch():
     assert torch.allclose(folded.reshape(6, 1, 32, 64), flat, atol=1e-6)
 
 
+def test_a_prior_or_validity_map_that_does_not_fit_the_images_is_one_clear_error():
+    net = DepthNet(use_prior=True).eval()
+    rgb = torch.rand(2, 3, 32, 64)
+    with torch.no_grad():
+        assert net(rgb, torch.zeros(2, 32, 64))[("depth", 0)].shape == (2, 1, 32, 64)  # any leading shape
+        for bad in (torch.zeros(2, 1, 16, 32), torch.zeros(1, 1, 32, 64), torch.zeros(2, 2, 32, 64)):
+            with pytest.raises(ValueError, match=rf"prior must hold one 32x64 map per image \(2 images\), got "
+                                                 rf"shape \[{', '.join(map(str, bad.shape))}\]"):
+                net(rgb, bad)  # before: torch reshape / cat size errors
+        with pytest.raises(TypeError, match="prior must be a torch.Tensor, got list"):
+            net(rgb, [[0.0]])
+        with pytest.raises(ValueError, match="valid must hold one 32x64 map per image"):
+            net(rgb, torch.zeros(2, 1, 32, 64), torch.ones(2, 1, 32, 32))
+
+
 @pytest.mark.parametrize("validity,form", [(False, "depth"), (True, "depth"), (True, "log")])
 def test_zero_prior_equivalence(validity, form):
     torch.manual_seed(0)

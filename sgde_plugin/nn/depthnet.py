@@ -76,6 +76,17 @@ class ConvBlock(nn.Module):
         return self.act(self.conv(x))
 
 
+def _check_map(name: str, value: object, images: int, size: tuple[int, int]) -> None:
+    """One clear error unless ``value`` is None or a tensor holding one ``size`` map per image (any leading shape)."""
+    if value is None:
+        return
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if tuple(value.shape[-2:]) != tuple(size) or value.numel() != images * size[0] * size[1]:
+        raise ValueError(f"{name} must hold one {size[0]}x{size[1]} map per image ({images} images), "
+                         f"got shape {list(value.shape)}")
+
+
 class DepthDecoder(nn.Module):
     """monodepth2-style U-Net decoder: per level upconv, upsample, skip concat, upconv; sigmoid heads."""
 
@@ -162,6 +173,8 @@ class DepthNet(nn.Module):
         lead = rgb.shape[:-3]
         h, w = rgb.shape[-2:]
         x = (rgb.reshape(-1, 3, h, w) - self.rgb_mean) / self.rgb_std
+        for name, value in (("prior", prior), ("valid", valid)):
+            _check_map(name, value, x.shape[0], (h, w))
         if self.encoding is not None:
             if prior is None:
                 prior = torch.zeros_like(x[:, :1])
