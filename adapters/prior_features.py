@@ -5,6 +5,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from sgde_plugin.nn import PriorEncoding
+from sgde_plugin.nn.inputs import require_tensor
 from sgde_plugin.splat import min_pool_nonzero_torch
 
 
@@ -26,8 +27,7 @@ def min_pool_nonzero(depth: Tensor, stride: int) -> Tensor:
 def check_prior_fits(prior: object, features: Tensor, stride: int) -> None:
     """Raise one ValueError naming both shapes unless ``prior`` ([B, N, H, W] or [B*N, 1, H, W] metres) lies on
     ``features`` ([B*N, C, h, w] or [B, N, C, h, w]) at ``stride``: B*N images, H = h * stride, W = w * stride."""
-    if not isinstance(prior, Tensor):
-        raise TypeError(f"prior must be a torch.Tensor of metres, got {type(prior).__name__}")
+    prior = require_tensor("prior", prior)
     p, f = list(prior.shape), list(features.shape)
     if prior.dim() != 4:
         raise ValueError(f"prior must be [B, N, H, W] or [B*N, 1, H, W], got {p}")

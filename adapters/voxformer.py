@@ -34,6 +34,7 @@ from sgde_plugin.cameras import CameraModel, pixel_grid
 from sgde_plugin.errors import InputError
 from sgde_plugin.geometry import invert_transform
 from sgde_plugin.nn import PriorL1Loss
+from sgde_plugin.nn.inputs import require_tensor
 
 from .voxel_grids import (
     GRID_PRESETS,
@@ -125,10 +126,8 @@ def load_query_net(path: str | Path, module: nn.Module | None = None) -> nn.Modu
 def _check_inputs(depth: object, sensor_to_ego: object, **maps: object) -> None:
     """One clear error for inputs of the wrong kind (TypeError) or shape (ValueError): depth [B, N, H, W], each map
     in ``maps`` None or of the depth's shape, ``sensor_to_ego`` [B, N, 4, 4] or [N, 4, 4]."""
-    for name, value in {"depth": depth, "sensor_to_ego": sensor_to_ego, **maps}.items():
-        if value is not None and not isinstance(value, Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    assert isinstance(depth, Tensor) and isinstance(sensor_to_ego, Tensor)
+    depth, sensor_to_ego = require_tensor("depth", depth), require_tensor("sensor_to_ego", sensor_to_ego)
+    maps = {name: None if value is None else require_tensor(name, value) for name, value in maps.items()}
     if depth.dim() != 4:
         raise ValueError(f"depth must be [B, N, H, W] metres, got shape {list(depth.shape)}")
     for name, value in maps.items():

@@ -295,7 +295,7 @@ def test_a_prior_that_does_not_lie_on_the_features_is_refused_naming_both_shapes
                 torch.zeros(1, 2, 32, 64)):  # another camera count, height, batch, a width that still pools
         with pytest.raises(ValueError, match=rf"prior \[{', '.join(map(str, bad.shape))}\] {expected}"):
             net(x, mats, prior=bad)
-    with pytest.raises(TypeError, match="prior must be a torch.Tensor of metres, got list"):
+    with pytest.raises(TypeError, match="prior must be a torch.Tensor, got list"):
         net(x, mats, prior=[[0.0]])
     user = inject_prior(_UserDepthNet(), in_channels=8, downsample=4)
     with pytest.raises(ValueError, match=r"prior \[2, 1, 12, 16\] does not fit the features \[2, 8, 3, 5\]"):

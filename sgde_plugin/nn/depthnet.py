@@ -12,6 +12,7 @@ import torchvision
 from torch import Tensor, nn
 
 from .encoding import PriorEncoding
+from .inputs import require_tensor
 from .stem import widen_first_conv
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -80,8 +81,7 @@ def _check_map(name: str, value: object, images: int, size: tuple[int, int]) -> 
     """One clear error unless ``value`` is None or a tensor holding one ``size`` map per image (any leading shape)."""
     if value is None:
         return
-    if not isinstance(value, Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    value = require_tensor(name, value)
     if tuple(value.shape[-2:]) != tuple(size) or value.numel() != images * size[0] * size[1]:
         raise ValueError(f"{name} must hold one {size[0]}x{size[1]} map per image ({images} images), "
                          f"got shape {list(value.shape)}")
