@@ -131,7 +131,7 @@ def _check_inputs(depth: object, sensor_to_ego: object, **maps: object) -> None:
     if depth.dim() != 4:
         raise ValueError(f"depth must be [B, N, H, W] metres, got shape {list(depth.shape)}")
     for name, value in maps.items():
-        if isinstance(value, Tensor) and value.shape != depth.shape:
+        if value is not None and value.shape != depth.shape:
             raise ValueError(f"{name} must have the depth's shape {list(depth.shape)}, got {list(value.shape)}")
     b, n = depth.shape[:2]
     if list(sensor_to_ego.shape) not in ([b, n, 4, 4], [n, 4, 4]):
