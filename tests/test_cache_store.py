@@ -15,6 +15,7 @@ from cache_fixtures import ALGO, CONFIG, build, content, tiny_rig
 
 from sgde_plugin.cache.fingerprints import fingerprint, fingerprint_parts
 from sgde_plugin.cache.inspection import cache_info, verify_cache
+from sgde_plugin.cache.reading import float16_to_float32
 from sgde_plugin.cache.store import PriorCache, SceneWriter, prepare_scene, store_keys
 from sgde_plugin.cache.synthetic import SyntheticPriorCompute
 from sgde_plugin.cli import main as cli_main
@@ -42,6 +43,15 @@ def test_round_trip_matches_compute_within_float16(tmp_path):
             assert np.all(depth[~valid] == 0)
             conf = cache.get_confidence(fid, cam)
             np.testing.assert_allclose(conf, np.where(d_ref > 0, c_ref, 0), atol=0.5 / 255 + 1e-6)
+
+
+def test_float16_reads_convert_every_bit_pattern_as_numpy_does():
+    every = np.arange(1 << 16, dtype=np.uint16).view(np.float16)
+    np.testing.assert_array_equal(float16_to_float32(every), every.astype(np.float32))  # NaNs compare equal here
+    cropped = every.reshape(256, 256)[3:200:2, 5:100]  # a strided view, as a cropped camera is read
+    out = float16_to_float32(cropped)
+    assert out.dtype == np.float32 and out.shape == cropped.shape
+    np.testing.assert_array_equal(out, cropped.astype(np.float32))
 
 
 def test_resized_get_is_min_pooled(tmp_path):

@@ -22,6 +22,23 @@ from .fingerprints import CACHE_FORMAT
 from .layout import CameraEntry, open_arrays, read_counts, scene_groups, scene_problems
 
 
+def _float16_table() -> np.ndarray:
+    """float32 value of every float16 bit pattern (read-only)."""
+    table = np.arange(1 << 16, dtype=np.uint16).view(np.float16).astype(np.float32)
+    table.flags.writeable = False
+    return table
+
+
+# a gather through this table is about 3x faster than ndarray.astype for float16 -> float32 (the cache's
+# depth reads spent a third of their time in that conversion)
+_FLOAT16_TO_32 = _float16_table()
+
+
+def float16_to_float32(values: np.ndarray) -> np.ndarray:
+    """float16 array -> float32, the same values as `values.astype(np.float32)`."""
+    return _FLOAT16_TO_32.take(np.ascontiguousarray(values).view(np.uint16))
+
+
 def damaged(where: str, scene: str, frame_id: str, camera: str, problem: str) -> InputError:
     """The one-line error of a damaged camera image (names the repair)."""
     return InputError(
@@ -109,7 +126,7 @@ class OpenScene:
                 self.where, self.name, frame_id, camera,
                 f"depth chunk missing or damaged ({n} valid pixels read, {int(self.counts[fi, ci])} written)",
             )
-        return ci, cam, raw.astype(np.float32)
+        return ci, cam, float16_to_float32(raw)
 
     def confidence(self, frame_id: str, fi: int, ci: int, cam: CameraEntry, depth: np.ndarray) -> np.ndarray:
         """Float32 confidence in [0, 1] of one camera image; an InputError when it is missing under depths."""
@@ -166,4 +183,4 @@ def open_cache(location: Location, scene: str | None, storage_options: Mapping[s
     return OpenCache(os.getpid(), root, rattrs, scenes, frame_index, duplicates)
 
 
-__all__ = ["OpenCache", "OpenScene", "damaged", "open_cache"]
+__all__ = ["OpenCache", "OpenScene", "damaged", "float16_to_float32", "open_cache"]
