@@ -20,8 +20,9 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/sgde demo --out $(OUT)
 
+# one worker per core (at most 4), a test file's tests together so each module-scoped fixture is built once
 test: lint
-	$(BIN)/python -m pytest tests
+	$(BIN)/python -m pytest -n auto --maxprocesses 4 --dist loadfile tests
 
 bench: $(STAMP)
 	$(BIN)/sgde bench --fast --json bench.json

@@ -6,6 +6,9 @@ Shared set-up helpers live in modules beside the tests (`cache_fixtures.py`, `st
 
 from __future__ import annotations
 
+import os
+
+import cv2
 import pytest
 import torch
 
@@ -23,3 +26,14 @@ def device(request: pytest.FixtureRequest) -> torch.device:
 def float_dtype(request: pytest.FixtureRequest) -> torch.dtype:
     """The float dtypes the geometry core computes in."""
     return request.param
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (`make test` runs one worker per core), one torch and one OpenCV thread per worker.
+
+    Two workers with a thread per core each would oversubscribe the machine, and idle OpenMP threads
+    spin; tests that need other counts set them in a scope of their own.
+    """
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        torch.set_num_threads(1)
+        cv2.setNumThreads(1)
