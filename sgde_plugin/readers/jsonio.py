@@ -149,6 +149,7 @@ def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] =
     parser when the rows are not flat objects.
     """
     out = []
+    select = [s for s in select if s[1] or s[2]]  # an empty set whose rows are dropped drops nothing: no scan
     try:
         index = 0
         for part, pieces in _object_chunks(path):
