@@ -1,5 +1,6 @@
 """Matchers: SGBM recovers known shifts, sub-pixel refinement removes pixel locking, and the learned-matcher
-adapter runs a tiny stand-in network as a state dict, TorchScript and ONNX with identical results.
+adapter runs a tiny stand-in network as a state dict, TorchScript, ONNX and a torch.export archive with identical
+results.
 
 Runtime: about 8 s on 2 cores.
 """
@@ -10,8 +11,10 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from cache_fixtures import tiny_rig
 from stereo_scene import _texture
 
+from sgde_plugin.cache.build import build_cache
 from sgde_plugin.errors import InputError
 from sgde_plugin.stereo.filters import refine_disparity
 from sgde_plugin.stereo.matchers import OnnxMatcher, SGBMMatcher, TorchMatcher, load_learned_matcher
@@ -168,3 +171,41 @@ def test_prior_builder_runs_a_learned_matcher(tiny_files, tmp_path):
     ok = (prior > 0) & (gt > 0)
     assert ok.sum() > 1000
     assert np.median(np.abs(prior[ok] - gt[ok]) / gt[ok]) < 0.02
+
+
+def test_a_torch_export_archive_runs_like_the_module_and_a_bad_one_is_one_line(tiny_files, tmp_path):
+    torch.manual_seed(0)
+    net = TinyMatcher(16).eval()
+    with torch.no_grad():
+        net.sharpness.fill_(2.0)
+    example = (torch.rand(2, 3, 128, 96) * 255, torch.rand(2, 3, 128, 96) * 255)
+    height, width = torch.export.Dim("height", min=96, max=4096), torch.export.Dim("width", min=64, max=4096)
+    sides = {0: torch.export.Dim("batch", max=16), 2: height, 3: width}
+    torch.export.save(torch.export.export(net, example, dynamic_shapes={"left": sides, "right": sides}),
+                      tmp_path / "tiny.pt2")
+    left, right = _pair(5.0, 128, 96)
+    exported = load_learned_matcher(tmp_path / "tiny.pt2")
+    d, c = exported.match(left, right, 16)
+    d0 = TorchMatcher(net).match(left, right, 16)[0]
+    assert np.abs(d - d0).max() < 1e-4 and abs(np.median(d[:, 20:-4]) - 5.0) < 0.1 and c.max() == 1.0
+    assert exported.match(left[:100, :70], right[:100, :70], 16)[0].shape == (100, 70)  # another canvas size
+    with pytest.raises(InputError, match="refuses inputs of shape"):  # 64 rows: under the exported minimum
+        exported.match(left[:64], right[:64], 16)
+    with pytest.raises(InputError, match="exported with"):
+        load_learned_matcher(tmp_path / "tiny.pt2", iters=4)
+    torch.export.save(torch.export.export(net, example), tmp_path / "fixed.pt2")
+    with pytest.raises(InputError, match="fixed left height 128.*must be dynamic"):
+        load_learned_matcher(tmp_path / "fixed.pt2")
+    data = (tmp_path / "tiny.pt2").read_bytes()
+    (tmp_path / "cut.pt2").write_bytes(data[: len(data) // 2])
+    (tmp_path / "script.pt2").write_bytes((tiny_files / "tiny_script.pt").read_bytes())  # a zip, not an archive
+    for bad, problem in (("cut.pt2", "not a zip file"), ("script.pt2", "not a readable torch.export archive")):
+        with pytest.raises(InputError, match=problem) as err:
+            load_learned_matcher(tmp_path / bad)
+        assert bad in str(err.value) and "\n" not in str(err.value)
+    # a cache build refuses a matcher file that does not load before the cache exists
+    for bad in ("fixed.pt2", "cut.pt2"):
+        config = PriorConfig.from_settings(matcher="torch", matcher_path=str(tmp_path / bad))
+        with pytest.raises(InputError, match=bad):
+            build_cache(tiny_rig(1), tmp_path / f"cache_{bad}", config, show_progress=False)
+        assert not (tmp_path / f"cache_{bad}").exists()

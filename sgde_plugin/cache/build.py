@@ -326,6 +326,8 @@ def build_cache(
     scene = scene or default_scene_name(rig)
     parts = dict(fingerprint_parts(rig, config, algo_version))
     parts["config_document"] = config_document(config, algo_version)
+    if compute is None and isinstance(config, PriorConfig) and config.learned:
+        config.make_matcher()  # a matcher file that does not load is refused before the cache exists
     start = time.perf_counter()
     with writer_lock(out, wait_s) as locked:
         try:

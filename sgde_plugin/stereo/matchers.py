@@ -7,8 +7,8 @@ speckle filtering) is the default. Learned matchers load from a local file (noth
   `module.` prefix of DataParallel) built with the official code, imported as `core.raft_stereo`
   from the user's checkout on PYTHONPATH, with its demo's arguments (overridable) and called as
   `forward(image1, image2, iters=32, test_mode=True)`; its output is a flow, disparity = -x.
-- `torch`: a TorchScript file, or a state dict plus the module that holds it (`arch`,
-  "pkg.module:factory", called with `options` as keywords).
+- `torch`: a `torch.export` archive (`.pt2`, height and width dynamic), a TorchScript file, or a state dict
+  plus the module that holds it (`arch`, "pkg.module:factory", called with `options` as keywords).
 - `onnx`: an ONNX file run by onnxruntime; height and width must be dynamic.
 
 Learned matchers get two (B, 3, H, W) float32 RGB tensors in [0, 255] times `input_scale`, padded
@@ -25,6 +25,9 @@ import hashlib
 import importlib
 import importlib.util
 import inspect
+import logging
+import warnings
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -235,7 +238,35 @@ class TorchMatcher(LearnedMatcher):
     @classmethod
     def from_torchscript(cls, path: str | Path, **kwargs: float) -> TorchMatcher:
         """Load a TorchScript file (`torch.jit.save`)."""
-        return cls(torch.jit.load(str(path), map_location="cpu"), **kwargs)
+        with warnings.catch_warnings():  # torch >= 2.10 deprecates TorchScript on every load; .pt2 is the successor
+            warnings.simplefilter("ignore", FutureWarning)
+            module = torch.jit.load(str(path), map_location="cpu")
+        return cls(module, **kwargs)
+
+    @classmethod
+    def from_exported(cls, path: str | Path, **kwargs: Any) -> TorchMatcher:
+        """Load a `torch.export.save` archive (.pt2) whose image inputs have dynamic height and width."""
+        path = Path(path)
+        if not zipfile.is_zipfile(path):
+            raise InputError(path, None, "not a torch.export archive (not a zip file)")
+        torch_export_log = logging.getLogger("torch.export")
+        level = torch_export_log.level
+        torch_export_log.setLevel(logging.ERROR)  # a damaged archive is logged with its traceback before it raises
+        try:
+            program = torch.export.load(str(path))
+        except Exception as exc:  # noqa: BLE001 - any unreadable archive is bad input
+            raise InputError(path, None, f"not a readable torch.export archive ({type(exc).__name__})") from None
+        finally:
+            torch_export_log.setLevel(level)
+        fixed = _fixed_image_sides(program)
+        if fixed:
+            raise InputError(path, "inputs", f"{fixed}: the rectified canvas differs per pair, so height and "
+                             "width must be dynamic; re-export with dynamic_shapes={name: {2: Dim('height'), "
+                             "3: Dim('width')}}")
+        device = kwargs.get("device", "cpu")
+        if device != "cpu":
+            program = torch.export.passes.move_to_device_pass(program, str(torch_device(device)))
+        return cls(_ExportedModule(program.module()), **kwargs)
 
     @classmethod
     def from_state_dict(
@@ -261,6 +292,44 @@ class TorchMatcher(LearnedMatcher):
         # TorchScript re-optimises for every new input shape, and canvases differ per pair: run it plainly
         with torch.inference_mode(), torch.jit.optimized_execution(False):
             return _output_array(self.module(a, b, **kwargs))
+
+
+class _ExportedModule(nn.Module):
+    """A `torch.export` program's module, called as forward(left, right); its mode was fixed when it was exported."""
+
+    def __init__(self, program: nn.Module):
+        super().__init__()
+        self.program = program
+
+    def train(self, mode: bool = True) -> _ExportedModule:
+        """No-op: an exported program cannot switch between training and inference."""
+        return self
+
+    def forward(self, left: Tensor, right: Tensor) -> Any:
+        """The exported program on one batch of image pairs; inputs outside its exported ranges are bad input."""
+        try:
+            return self.program(left, right)
+        except (AssertionError, RuntimeError) as exc:
+            if "guard" not in str(exc).lower():
+                raise
+            raise InputError(None, "matcher", f"the exported program refuses inputs of shape {tuple(left.shape)} "
+                             f"({str(exc).splitlines()[0]}); re-export it with wider dynamic_shapes") from None
+
+
+def _fixed_image_sides(program: Any) -> str:
+    """'' when the program's first two inputs have symbolic height and width; else which ones are fixed."""
+    placeholders = {n.name: n for n in program.graph.nodes if n.op == "placeholder"}
+    names = list(program.graph_signature.user_inputs)
+    if len(names) < 2:
+        return f"{len(names)} input(s), expected the left and the right image"
+    fixed = []
+    for name in names[:2]:
+        shape = getattr(placeholders[name].meta.get("val"), "shape", ())
+        if len(shape) != 4:
+            return f"input {name} has {len(shape)} dimensions, expected (B, 3, H, W)"
+        fixed += [f"{name} {side} {int(shape[d])}" for d, side in ((2, "height"), (3, "width"))
+                  if not isinstance(shape[d], torch.SymInt)]
+    return ", ".join(f"fixed {f}" for f in fixed)
 
 
 def load_checkpoint(module: nn.Module, path: str | Path) -> None:
@@ -379,7 +448,7 @@ def load_learned_matcher(
     iters: int | None = None, device: str = "cpu", batch_size: int = 2,
 ) -> TorchMatcher | OnnxMatcher:
     """A learned matcher from a local file: `kind` "raft-stereo" (official checkpoint), "onnx" (or a .onnx
-    file), else TorchScript, or a state dict + `arch`."""
+    file), else a torch.export archive (.pt2), TorchScript, or a state dict + `arch`."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, None, "matcher file not found")
@@ -394,6 +463,10 @@ def load_learned_matcher(
         return TorchMatcher(module, forward_kwargs={**forward, "test_mode": True}, **kw)
     if arch is not None:
         return TorchMatcher.from_state_dict(_import_factory(arch), path, options, forward_kwargs=forward, **kw)
+    if path.suffix.lower() == ".pt2":
+        if forward:
+            raise InputError(path, "matcher_iters", "an exported program runs the iterations it was exported with")
+        return TorchMatcher.from_exported(path, **kw)
     try:
         return TorchMatcher.from_torchscript(path, forward_kwargs=forward, **kw)
     except RuntimeError:
