@@ -22,6 +22,7 @@ that occupancy into 128 x 128 x 16 query proposals (saved as ``.query*``) for th
 from __future__ import annotations
 
 import pickle
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from sgde_plugin.errors import InputError
 from sgde_plugin.geometry import invert_transform
 from sgde_plugin.nn import PriorL1Loss
 from sgde_plugin.nn.inputs import require_tensor
+from sgde_plugin.torchfiles import ExportedModule, load_exported_program
 
 from .voxel_grids import (
     GRID_PRESETS,
@@ -104,16 +106,21 @@ def query_proposals(occupancy: Tensor, query_net: nn.Module) -> Tensor:
 
 
 def load_query_net(path: str | Path, module: nn.Module | None = None) -> nn.Module:
-    """A query-proposal network from a local file: TorchScript, or a state dict into ``module``.
+    """A query-proposal network from a local file: a torch.export archive (.pt2), TorchScript, or a state dict into
+    ``module``.
 
     A state dict may sit under a ``"state_dict"`` key (mmcv checkpoints). Nothing is downloaded.
     """
     path = Path(path)
     if not path.is_file():
         raise InputError(path, None, "no such checkpoint file")
+    if module is None and path.suffix.lower() == ".pt2":
+        return ExportedModule(load_exported_program(path))
     try:
         if module is None:
-            net = torch.jit.load(str(path), map_location="cpu")
+            with warnings.catch_warnings():  # torch >= 2.10 deprecates TorchScript on every load
+                warnings.simplefilter("ignore", FutureWarning)
+                net = torch.jit.load(str(path), map_location="cpu")
         else:
             state = torch.load(str(path), map_location="cpu", weights_only=True)
             module.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)

@@ -256,3 +256,21 @@ def test_query_network_and_multi_sweep_accumulation(tmp_path):
         load_query_net(tmp_path / "absent.pt")
     with pytest.raises(ValueError, match="expected .B, C, 100, 100, 8. class logits"):
         DepthToVoxelProposals(grid, query_net=nn.Identity())(no_depth, [cam.intrinsics], eye)
+
+
+def test_query_network_from_a_torch_export_archive_proposes_what_the_module_does(tmp_path):
+    grid = OCC3D_NUSCENES_GRID
+    net = _PoolingQueryNet()
+    example = torch.zeros(1, 16, 200, 200)
+    torch.export.save(torch.export.export(net, (example,)), tmp_path / "qpn.pt2")
+    cam = Camera("c", Pinhole(2, 2, np.eye(3)), np.eye(4))
+    no_depth, eye = torch.zeros(1, 1, 2, 2, dtype=torch.float64), torch.eye(4, dtype=torch.float64)[None, None]
+    points = (torch.tensor([[[4.3, 0.1, 0.1], [4.5, 0.5, 0.5], [9.0, 3.0, 0.2]]], dtype=torch.float64),
+              torch.ones(1, 3, dtype=torch.bool))
+    outs = [DepthToVoxelProposals(grid, query_net=q)(no_depth, [cam.intrinsics], eye, past_points=points)
+            for q in (net, load_query_net(tmp_path / "qpn.pt2"))]
+    assert outs[0]["proposals"].sum() == 1 and torch.equal(outs[0]["proposals"], outs[1]["proposals"])
+    data = (tmp_path / "qpn.pt2").read_bytes()
+    (tmp_path / "cut.pt2").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="cut.pt2: not a torch.export archive"):
+        load_query_net(tmp_path / "cut.pt2")

@@ -25,9 +25,7 @@ import hashlib
 import importlib
 import importlib.util
 import inspect
-import logging
 import warnings
-import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import InputError
+from ..torchfiles import ExportedModule, load_exported_program
 
 # the official RAFT-Stereo demo's architecture arguments (demo.py); `matcher_options` override them
 RAFT_STEREO_ARGS: dict[str, Any] = {
@@ -246,27 +245,14 @@ class TorchMatcher(LearnedMatcher):
     @classmethod
     def from_exported(cls, path: str | Path, **kwargs: Any) -> TorchMatcher:
         """Load a `torch.export.save` archive (.pt2) whose image inputs have dynamic height and width."""
-        path = Path(path)
-        if not zipfile.is_zipfile(path):
-            raise InputError(path, None, "not a torch.export archive (not a zip file)")
-        torch_export_log = logging.getLogger("torch.export")
-        level = torch_export_log.level
-        torch_export_log.setLevel(logging.ERROR)  # a damaged archive is logged with its traceback before it raises
-        try:
-            program = torch.export.load(str(path))
-        except Exception as exc:  # noqa: BLE001 - any unreadable archive is bad input
-            raise InputError(path, None, f"not a readable torch.export archive ({type(exc).__name__})") from None
-        finally:
-            torch_export_log.setLevel(level)
+        device = kwargs.get("device", "cpu")
+        program = load_exported_program(path, "cpu" if device == "cpu" else str(torch_device(device)))
         fixed = _fixed_image_sides(program)
         if fixed:
             raise InputError(path, "inputs", f"{fixed}: the rectified canvas differs per pair, so height and "
                              "width must be dynamic; re-export with dynamic_shapes={name: {2: Dim('height'), "
                              "3: Dim('width')}}")
-        device = kwargs.get("device", "cpu")
-        if device != "cpu":
-            program = torch.export.passes.move_to_device_pass(program, str(torch_device(device)))
-        return cls(_ExportedModule(program.module()), **kwargs)
+        return cls(ExportedModule(program), **kwargs)
 
     @classmethod
     def from_state_dict(
@@ -292,28 +278,6 @@ class TorchMatcher(LearnedMatcher):
         # TorchScript re-optimises for every new input shape, and canvases differ per pair: run it plainly
         with torch.inference_mode(), torch.jit.optimized_execution(False):
             return _output_array(self.module(a, b, **kwargs))
-
-
-class _ExportedModule(nn.Module):
-    """A `torch.export` program's module, called as forward(left, right); its mode was fixed when it was exported."""
-
-    def __init__(self, program: nn.Module):
-        super().__init__()
-        self.program = program
-
-    def train(self, mode: bool = True) -> _ExportedModule:
-        """No-op: an exported program cannot switch between training and inference."""
-        return self
-
-    def forward(self, left: Tensor, right: Tensor) -> Any:
-        """The exported program on one batch of image pairs; inputs outside its exported ranges are bad input."""
-        try:
-            return self.program(left, right)
-        except (AssertionError, RuntimeError) as exc:
-            if "guard" not in str(exc).lower():
-                raise
-            raise InputError(None, "matcher", f"the exported program refuses inputs of shape {tuple(left.shape)} "
-                             f"({str(exc).splitlines()[0]}); re-export it with wider dynamic_shapes") from None
 
 
 def _fixed_image_sides(program: Any) -> str:
