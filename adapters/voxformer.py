@@ -22,7 +22,6 @@ that occupancy into 128 x 128 x 16 query proposals (saved as ``.query*``) for th
 from __future__ import annotations
 
 import pickle
-import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -36,7 +35,7 @@ from sgde_plugin.errors import InputError
 from sgde_plugin.geometry import invert_transform
 from sgde_plugin.nn import PriorL1Loss
 from sgde_plugin.nn.inputs import require_tensor
-from sgde_plugin.torchfiles import ExportedModule, load_exported_program
+from sgde_plugin.torchfiles import ExportedModule, load_exported_program, load_torchscript
 
 from .voxel_grids import (
     GRID_PRESETS,
@@ -118,9 +117,7 @@ def load_query_net(path: str | Path, module: nn.Module | None = None) -> nn.Modu
         return ExportedModule(load_exported_program(path))
     try:
         if module is None:
-            with warnings.catch_warnings():  # torch >= 2.10 deprecates TorchScript on every load
-                warnings.simplefilter("ignore", FutureWarning)
-                net = torch.jit.load(str(path), map_location="cpu")
+            net = load_torchscript(path)
         else:
             state = torch.load(str(path), map_location="cpu", weights_only=True)
             module.load_state_dict(state.get("state_dict", state) if isinstance(state, dict) else state)

@@ -1,8 +1,9 @@
-"""`torch.export` archives (.pt2), the successor of TorchScript files, read with one-line errors."""
+"""torch model files: `torch.export` archives (.pt2) read with one-line errors, and TorchScript files."""
 
 from __future__ import annotations
 
 import logging
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,13 @@ def load_exported_program(path: str | Path, device: str = "cpu") -> Any:
     return program
 
 
+def load_torchscript(path: str | Path) -> Any:
+    """A TorchScript file (`torch.jit.save`) on the CPU; torch's errors pass through for the caller to name."""
+    with warnings.catch_warnings():  # torch >= 2.10 deprecates TorchScript on every load; .pt2 is the successor
+        warnings.simplefilter("ignore", FutureWarning)
+        return torch.jit.load(str(path), map_location="cpu")
+
+
 class ExportedModule(nn.Module):
     """An exported program as a module; its train / eval mode was fixed when it was exported."""
 
@@ -55,4 +63,4 @@ class ExportedModule(nn.Module):
                              f"({str(exc).splitlines()[0]}); re-export it with wider dynamic_shapes") from None
 
 
-__all__ = ["ExportedModule", "load_exported_program"]
+__all__ = ["ExportedModule", "load_exported_program", "load_torchscript"]

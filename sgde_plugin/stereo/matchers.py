@@ -25,7 +25,6 @@ import hashlib
 import importlib
 import importlib.util
 import inspect
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +36,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import InputError
-from ..torchfiles import ExportedModule, load_exported_program
+from ..torchfiles import ExportedModule, load_exported_program, load_torchscript
 
 # the official RAFT-Stereo demo's architecture arguments (demo.py); `matcher_options` override them
 RAFT_STEREO_ARGS: dict[str, Any] = {
@@ -237,10 +236,7 @@ class TorchMatcher(LearnedMatcher):
     @classmethod
     def from_torchscript(cls, path: str | Path, **kwargs: float) -> TorchMatcher:
         """Load a TorchScript file (`torch.jit.save`)."""
-        with warnings.catch_warnings():  # torch >= 2.10 deprecates TorchScript on every load; .pt2 is the successor
-            warnings.simplefilter("ignore", FutureWarning)
-            module = torch.jit.load(str(path), map_location="cpu")
-        return cls(module, **kwargs)
+        return cls(load_torchscript(path), **kwargs)
 
     @classmethod
     def from_exported(cls, path: str | Path, **kwargs: Any) -> TorchMatcher:
