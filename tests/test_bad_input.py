@@ -368,8 +368,8 @@ def test_every_key_of_rig_json_broken_every_way_is_one_line_or_valid(rig_dir, ca
 
 def test_every_key_of_a_ddad_scene_broken_every_way_is_one_line_or_valid(tmp_path, capsys):
     folder = tmp_path / "000000"
-    write_scene(folder, n=2)
-    few = (None, "x", [[1, 2], [3]], 1e308, "delete")  # each validate reads the scene's images: a smaller set
+    write_scene(folder, n=2, scale=0.125)  # each validate decodes the scene's images: small ones
+    few = (None, "x", [[1, 2], [3]], 1e308, "delete")  # and a smaller set of values
     calibration = next((folder / "calibration").iterdir())
     runs, refused = _every_mutation_is_valid_or_one_line(folder, calibration, capsys, few, items=1)
     assert runs > 100 and refused > 0.8 * runs

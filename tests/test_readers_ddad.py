@@ -54,8 +54,12 @@ def ego_at(k: int) -> np.ndarray:
     return make_transform(yaw_pitch_roll_to_rotation(0.1 * k, 0.01, -0.02 * k), [10.0 * k, 2.0 * k, 0.05 * k])
 
 
-def write_scene(folder: Path, n: int = 3, images: bool = True) -> dict:
-    """One DGP scene with n samples of six cameras and a lidar; returns the truth."""
+def write_scene(folder: Path, n: int = 3, images: bool = True, scale: float = 1.0) -> dict:
+    """One DGP scene with n samples of six cameras and a lidar; returns the truth.
+
+    `scale` shrinks the images and the intrinsics together (tests that only read the JSON decode less).
+    """
+    w, h = round(W * scale), round(H * scale)
     names = [*sorted(RING), "LIDAR"]
     calib_key = sha("calib", folder.name)
     intr, extr, truth = [], [], {"cameras": {}, "frames": []}
@@ -65,7 +69,8 @@ def write_scene(folder: Path, n: int = 3, images: bool = True) -> dict:
                          "k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0, "k5": 0.0, "k6": 0.0, "p1": 0.0, "p2": 0.0})
             extr.append(dgp_pose(make_transform(np.eye(3), [1.3, 0.0, 1.9])))
             continue
-        yaw, pos, fx, fy, cx, cy = MOUNTS[name]
+        yaw, pos, *k = MOUNTS[name]
+        fx, fy, cx, cy = (scale * v for v in k)
         T = camera_mount(math.radians(yaw), np.array(pos))
         truth["cameras"][name] = (T, [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         intr.append({"fx": fx, "fy": fy, "cx": cx, "cy": cy, "skew": 0.0, "fov": 0.0, "fisheye": 0, "k1": 0.0,
@@ -75,7 +80,7 @@ def write_scene(folder: Path, n: int = 3, images: bool = True) -> dict:
     (folder / "calibration" / f"{calib_key}.json").write_text(
         json.dumps({"names": names, "intrinsics": intr, "extrinsics": extr}, indent=2))
     samples, data = [], []
-    img = np.zeros((H, W, 3), np.uint8)
+    img = np.zeros((h, w, 3), np.uint8)
     for k in range(n):
         keys = []
         ts_sample = T0 + 100_000 * k
@@ -90,7 +95,7 @@ def write_scene(folder: Path, n: int = 3, images: bool = True) -> dict:
             else:
                 filename = f"rgb/{name}/{ts}.png"
                 world_from_cam = ego_at(k) @ truth["cameras"][name][0]
-                datum = {"image": {"filename": filename, "height": H, "width": W, "channels": 3,
+                datum = {"image": {"filename": filename, "height": h, "width": w, "channels": 3,
                                    "annotations": {}, "metadata": {}, "pose": dgp_pose(world_from_cam)}}
                 if images:
                     write_image(folder / filename, img)
