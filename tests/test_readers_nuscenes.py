@@ -401,3 +401,39 @@ def test_lidar_sweep_projects_at_each_cameras_own_capture(dataset: tuple[Path, d
     # and this camera (0.26 m of ego motion) would move them by far more than that
     np.testing.assert_allclose(depth[row, col], cam_pts[:, 2], rtol=1e-4)
     assert np.count_nonzero(depth) == 40
+
+
+def test_tables_load_without_a_garbage_collection_and_the_collector_is_restored(dataset: tuple[Path, dict]) -> None:
+    # each full collection walks every parsed row: on trainval's tables that was a third of the load (95 -> 68 s)
+    import gc
+
+    from sgde_plugin.readers.jsonio import paused_gc
+    from sgde_plugin.readers.nuscenes import load_nuscenes
+
+    root, _ = dataset
+    starts: list[int] = []
+
+    def count(phase: str, info: dict) -> None:
+        if phase == "start":
+            starts.append(info["generation"])
+
+    gc.callbacks.append(count)
+    try:
+        gc.collect()
+        starts.clear()
+        rigs = load_nuscenes(root, VERSION, sweeps=True)
+        assert not starts and gc.isenabled()
+        junk = [[i] for i in range(10 * gc.get_threshold()[0])]  # the collector still runs afterwards
+        assert starts and junk
+        gc.disable()
+        with paused_gc():
+            pass
+        assert not gc.isenabled()  # a caller's own pause is left as it was
+        gc.enable()
+        with pytest.raises(KeyError), paused_gc():
+            raise KeyError("x")
+        assert gc.isenabled()
+    finally:
+        gc.callbacks.remove(count)
+        gc.enable()
+    assert sum(len(r.frames) for r in rigs) > 10

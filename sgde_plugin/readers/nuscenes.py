@@ -38,7 +38,7 @@ from ..io import image_size
 from ..lidar import LidarSweep
 from ..rig import CameraCapture, Frame, Rig, ring_pairs
 from ..rigfile import intrinsics_from_dict
-from .jsonio import QUATERNION_TOL, get, number_list, read_json, scan_table, unit_quaternion
+from .jsonio import QUATERNION_TOL, get, number_list, paused_gc, read_json, scan_table, unit_quaternion
 
 RING = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
 REFERENCE = "CAM_FRONT"  # the camera whose timestamp and ego pose a frame takes
@@ -126,11 +126,12 @@ class NuScenesTables:
         for name in TABLES:
             if not (self.dir / f"{name}.json").is_file():
                 raise InputError(self.dir / f"{name}.json", None, "file not found (a nuScenes table)")
-        self._load_scenes(scenes)
-        self._load_samples()
-        self._load_calibration()
-        self._load_sample_data()
-        self._load_ego_poses()
+        with paused_gc():
+            self._load_scenes(scenes)
+            self._load_samples()
+            self._load_calibration()
+            self._load_sample_data()
+            self._load_ego_poses()
         self._mounts: dict[str, np.ndarray] = {}  # LiDAR calibration token -> sensor_to_ego
 
     # --- tables ------------------------------------------------------------------------------
@@ -248,7 +249,8 @@ class NuScenesTables:
 
     def rig(self, scene: str, check_images: bool = False) -> Rig:
         """The Rig of one loaded scene (name or token); `check_images` checks every file and size."""
-        return _SceneRig(self, self._find_scene(scene), check_images).build()
+        with paused_gc():
+            return _SceneRig(self, self._find_scene(scene), check_images).build()
 
     def _find_scene(self, scene: str) -> _Scene:
         """The loaded scene with this name or token."""
@@ -443,8 +445,9 @@ def _row_error(path: Path, row: dict, exc: Exception) -> InputError:
 def load_nuscenes(root: str | Path, version: str, scene: str | None = None, sweeps: bool = False,
                   check_images: bool = False) -> list[Rig]:
     """Rigs of one scene (name or token) or of every scene of a nuScenes version."""
-    tables = NuScenesTables(root, version, None if scene is None else [scene], sweeps)
-    return [tables.rig(name, check_images) for name in tables.scene_names()]
+    with paused_gc():
+        tables = NuScenesTables(root, version, None if scene is None else [scene], sweeps)
+        return [tables.rig(name, check_images) for name in tables.scene_names()]
 
 
 __all__ = ["RING", "NuScenesTables", "is_tables_folder", "load_nuscenes", "scene_table", "versions"]
