@@ -437,3 +437,23 @@ def test_tables_load_without_a_garbage_collection_and_the_collector_is_restored(
         gc.callbacks.remove(count)
         gc.enable()
     assert sum(len(r.frames) for r in rigs) > 10
+
+
+def test_scan_table_parses_the_selected_rows_of_each_chunk_and_names_a_bad_one(tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    import re
+
+    from sgde_plugin.readers import jsonio
+
+    monkeypatch.setattr(jsonio, "_CHUNK", 4096)  # many chunks, each starting inside a separator
+    rows = [{"token": f"{i:032x}", "kind": "cam" if i % 3 else "radar", "v": i} for i in range(5000)]
+    text = json.dumps(rows, indent=0)
+    (tmp_path / "t.json").write_text(text)
+    kind = (re.compile(r'"kind"\s*:\s*"([^"\\]*)"'), {"radar"}, False)
+    kept = jsonio.scan_table(tmp_path / "t.json", lambda r: r["v"] if r["kind"] == "cam" else None, [kind])
+    assert kept == [i for i in range(5000) if i % 3]
+    assert jsonio.scan_table(tmp_path / "t.json", lambda r: r["v"]) == list(range(5000))
+    for bad in (37, 4999):  # a kept row with a value that is not JSON, in the middle and last
+        (tmp_path / "t.json").write_text(text.replace(f'"v": {bad}\n', f'"v": {bad}x\n'))
+        with pytest.raises(InputError, match=rf"t.json: element {bad}: bad JSON"):
+            jsonio.scan_table(tmp_path / "t.json", lambda r: r["v"], [kind])

@@ -173,8 +173,7 @@ def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] =
         index = 0
         for part, pieces in _object_chunks(path):
             kept = _selected(part, pieces, select)
-            texts = [pieces[i][pieces[i].index("{"):] + "}" for i in kept]
-            for row in _parse_rows(path, texts, [index + i for i in kept]):
+            for row in _parse_rows(path, pieces, kept, index):
                 result = reduce(row)
                 if result is not None:
                     out.append(result)
@@ -192,20 +191,24 @@ def scan_table(path: Path, reduce: Callable[[dict], Any], select: list[Select] =
     return out
 
 
-def _parse_rows(path: Path, texts: list[str], indices: list[int]) -> list:
-    """Parse object texts in one call; on an error, one by one to name the bad element."""
+def _parse_rows(path: Path, pieces: list[str], kept: list[int], first: int) -> list:
+    """Parse the kept pieces of a chunk (`_object_chunks`) in one call; on an error, one by one to name the bad
+    element (`first` is the chunk's first element index)."""
+    # each piece is its separator (checked by _object_chunks: whitespace, a comma, whitespace) and its object
+    # without the '}', so joined at '}' they are the objects and their separators, the first one's to strip
+    text = "}".join(pieces) if len(kept) == len(pieces) else "}".join([pieces[i] for i in kept])
     try:
-        rows = json.loads("[" + ",".join(texts) + "]")
-        if len(rows) == len(texts):
+        rows = json.loads("[" + text.lstrip(" \t\r\n,") + "}]") if kept else []
+        if len(rows) == len(kept):
             return rows
     except json.JSONDecodeError:
         pass
     rows = []
-    for index, text in zip(indices, texts):
+    for i in kept:
         try:
-            rows.append(json.loads(text))
+            rows.append(json.loads(pieces[i][pieces[i].index("{"):] + "}"))
         except json.JSONDecodeError as exc:
-            raise InputError(path, f"element {index}", f"bad JSON ({exc.msg})") from None
+            raise InputError(path, f"element {first + i}", f"bad JSON ({exc.msg})") from None
     return rows
 
 
