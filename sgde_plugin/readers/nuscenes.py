@@ -194,11 +194,13 @@ class NuScenesTables:
         sizes: dict[tuple[int, int], tuple[int, int]] = {}
         shared_calib = {t: t for t in calib_channel}
 
-        # rows `reduce` would drop, recognised without parsing them (non-camera sensors, other scenes)
-        select = [(_CALIB_RE, {t for t, c in calib_channel.items() if c is None}, False),
-                  (_SAMPLE_RE, {t for t, sc in sample_scene.items() if sc is None}, False)]
+        # rows `reduce` would drop, recognised without parsing them (other scenes, sweeps, non-camera sensors); the
+        # other scenes first: when some scenes are chosen it drops nearly every row, and the later selections then
+        # test the few rows left one by one instead of the whole chunk (all scenes: an empty set, no scan)
+        select = [(_SAMPLE_RE, {t for t, sc in sample_scene.items() if sc is None}, False),
+                  (_CALIB_RE, {t for t, c in calib_channel.items() if c is None}, False)]
         if keyframes_only:
-            select.insert(0, (_KEY_RE, {"false"}, False))
+            select.insert(1, (_KEY_RE, {"false"}, False))
 
         def reduce(row: dict) -> tuple | None:
             try:
