@@ -6,7 +6,6 @@ A cheap stand-in compute (synthetic priors + 60 ms per frame) keeps it fast: ~15
 
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import subprocess
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sgde_plugin.cache.lock import writer_lock
 from sgde_plugin.cache.store import PriorCache, read_key, store_keys
 
 FRAMES = 40
@@ -68,19 +68,11 @@ def _done_count(out: Path) -> int:
         return 0
 
 
-def _wait_lock_free(out: Path, timeout: float = 10.0) -> None:
-    """Wait until the killed build's last process has let go of the cache's writer lock (flock on the folder)."""
-    deadline = time.time() + timeout
-    while out.is_dir() and time.time() < deadline:
-        fd = os.open(out, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            fcntl.flock(fd, fcntl.LOCK_UN)
-            return
-        except BlockingIOError:
-            time.sleep(0.01)
-        finally:
-            os.close(fd)
+def _wait_lock_free(out: Path) -> None:
+    """Wait until the killed build's last process has let go of the cache's writer lock (up to 10 s)."""
+    if out.is_dir():  # killed before the folder existed: nothing holds it, and no folder is made here
+        with writer_lock(out, wait_s=10.0):
+            pass
 
 
 def _check_finished_frames(out: Path, reference: PriorCache) -> int:
