@@ -309,3 +309,124 @@ def test_masked_median_is_numpys_median(n):
     expected = float(np.median(values[mask])) if n else 0.0
     assert masked_median(values, mask) == expected
     np.testing.assert_array_equal(values, before)  # the input is left as it was
+
+
+def _random_rotation(rng: np.random.Generator, max_deg: float) -> np.ndarray:
+    """A rotation by up to `max_deg` about a random axis."""
+    import cv2
+
+    axis = rng.normal(size=3)
+    axis *= np.radians(rng.uniform(0, max_deg)) / np.linalg.norm(axis)
+    return cv2.Rodrigues(axis)[0]
+
+
+def _landing(rays, ok, R, K, window):
+    """Bool (H, W): valid pixels whose ray, turned by R, lands in the canvas window of intrinsics K (brute force)."""
+    q = rays.numpy() @ R.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * q[..., 0] / q[..., 2] + K[0, 2]
+        v = K[1, 1] * q[..., 1] / q[..., 2] + K[1, 2]
+    return ok.numpy() & (q[..., 2] > 1e-6) & (u >= window[0]) & (u <= window[1]) & (v >= window[2]) & (v <= window[3])
+
+
+def test_candidate_box_holds_every_pixel_that_lands_in_the_canvas_window():
+    """The back-projection rotates only a block of the original pixels; on random turns and canvas windows the block
+    holds every valid pixel whose ray lands in the window (a pinhole, a strongly distorted one, a 220-degree
+    fisheye whose valid area is a disc), also when the window's border is sampled 64x more sparsely (the margin
+    then has to cover what lies between samples), and is not much larger than their bounding box."""
+    from sgde_plugin.cameras import KannalaBrandt, Pinhole
+    from sgde_plugin.rig import Camera
+    from sgde_plugin.stereo.backproject import _candidate_box
+
+    K = np.array([[150.0, 0, 99.5], [0, 150.0, 59.5], [0, 0, 1]])
+    fish = np.array([[160 / 2 / np.radians(110), 0, 79.5], [0, 160 / 2 / np.radians(110), 79.5], [0, 0, 1]])
+    models = [Pinhole(200, 120, K, None), Pinhole(200, 120, K, np.array([-0.32, 0.12, 0.001, -0.002, -0.02])),
+              KannalaBrandt(160, 160, fish, np.zeros(4), 220.0)]
+    rng = np.random.default_rng(7)
+    checked = tight = edge = 0
+    for model in models:
+        cam = Camera("C", model, np.eye(4))
+        rays, ok = model.ray_grid()
+        for trial in range(80):
+            R = _random_rotation(rng, 120.0 if trial % 4 else 20.0)
+            f = rng.uniform(40, 300) if trial % 4 else rng.uniform(10, 40)  # every fourth: a view beyond the image
+            Kr = np.array([[f, 0, rng.uniform(0, 120)], [0, f, rng.uniform(0, 80)], [0, 0, 1]])
+            u_lo, v_lo = rng.uniform(-20, 100), rng.uniform(-20, 60)
+            window = (u_lo, u_lo + rng.uniform(5, 120), v_lo, v_lo + rng.uniform(5, 80))
+            rows, cols = np.nonzero(_landing(rays, ok, R, Kr, window))
+            if rows.size == 0:
+                continue
+            checked += 1
+            edge += bool(rows.min() == 0 or cols.min() == 0 or rows.max() == model.height - 1
+                         or cols.max() == model.width - 1 or not ok.numpy()[rows, cols].all())
+            for step in (64.0, 1.0):
+                r0, r1, c0, c1 = _candidate_box(cam, R, Kr, window, rays, ok, step_px=step)
+                assert r0 <= rows.min() and rows.max() < r1 and c0 <= cols.min() and cols.max() < c1, (model, step)
+            span_r, span_c = int(rows.max() - rows.min()) + 1, int(cols.max() - cols.min()) + 1
+            tight += (r1 - r0) * (c1 - c0) <= (span_r + 24) * (span_c + 24)
+    assert checked >= 80 and edge >= 20 and tight >= 0.9 * checked, (checked, edge, tight)
+    # the whole image seen through a wide canvas: no border sample lands in the image, the image's frame holds it
+    rays, ok = models[0].ray_grid()
+    wide = np.array([[30.0, 0, 60.0], [0, 30.0, 40.0], [0, 0, 1]])
+    assert _landing(rays, ok, np.eye(3), wide, (0, 119, 0, 79)).all()
+    assert _candidate_box(Camera("C", models[0], np.eye(4)), np.eye(3), wide, (0, 119, 0, 79), rays, ok) == (
+        0, 120, 0, 200)
+    assert _candidate_box(Camera("C", models[0], np.eye(4)), np.eye(3), K, None, rays, ok) == (0, 0, 0, 0)
+
+
+@pytest.mark.parametrize("scene", [pinhole_scene, fisheye_scene])
+def test_backprojection_on_the_candidate_box_equals_the_whole_image(scene, monkeypatch):
+    """Planning with the block (`_candidate_box`) gives the backward maps of rotating every pixel, bit for bit."""
+    from sgde_plugin.stereo import backproject
+    from sgde_plugin.stereo.planning import plan_pairs
+
+    rig, _, _ = scene()
+    boxes = []
+    real = backproject._candidate_box
+
+    def recorded(camera, *args, **kwargs):
+        boxes.append((real(camera, *args, **kwargs), camera.width * camera.height))
+        return boxes[-1][0]
+
+    monkeypatch.setattr(backproject, "_candidate_box", recorded)
+    fast = plan_pairs(rig, PriorConfig())
+    monkeypatch.setattr(backproject, "_candidate_box", lambda camera, *a, **k: (0, camera.height, 0, camera.width))
+    whole = plan_pairs(rig, PriorConfig())
+    assert len(fast) == len(whole) >= 1
+    for a, b in zip(fast, whole):
+        for sa, sb in ((a.left, b.left), (a.right, b.right)):
+            assert sa.back.count > 1000
+            for name in ("index", "map_x", "map_y", "kfb", "corners"):
+                assert np.array_equal(getattr(sa.back, name), getattr(sb.back, name)), name
+    assert min((r1 - r0) * (c1 - c0) / area for (r0, r1, c0, c1), area in boxes) < 0.7  # it does restrict
+
+
+def test_a_moved_rig_planned_again_with_the_kept_ray_grids_equals_a_fresh_plan(monkeypatch):
+    """`plan_pairs(..., shared)` reuses the cameras' ray grids (keyed by intrinsics) for the rig with its cameras
+    moved: no original camera's grid is made again and the plans equal a fresh planning."""
+    from sgde_plugin.cameras import Pinhole
+    from sgde_plugin.stereo.planning import plan_pairs
+
+    rig, _, _ = pinhole_scene()
+    shared: dict = {}
+    plan_pairs(rig, PriorConfig(), shared)
+    models = {c.intrinsics for c in rig.cameras}  # one grid per intrinsics (models compare by value)
+    assert {k[0] for k in shared} == {"rays"} and len(shared) == len(models)
+    moved = rig.with_extrinsics({"FRONT_RIGHT": rig.camera("FRONT_RIGHT").sensor_to_ego @ np.array(
+        [[1, 0, 0, 0.2], [0, 1, 0, 0.0], [0, 0, 1, 0.1], [0, 0, 0, 1.0]])})
+    made = []
+    real = Pinhole.ray_grid
+
+    def counted(self, *args, **kwargs):
+        made.append((self.width, self.height))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Pinhole, "ray_grid", counted)
+    again = plan_pairs(moved, PriorConfig(), shared)
+    fresh = plan_pairs(moved, PriorConfig())
+    originals = (rig.camera("FRONT").width, rig.camera("FRONT").height)
+    assert made.count(originals) == len(models)  # the fresh planning's grids; none for the planning with `shared`
+    for a, b in zip(again, fresh):
+        for sa, sb in ((a.left, b.left), (a.right, b.right)):
+            for name in ("index", "map_x", "map_y", "kfb"):
+                assert np.array_equal(getattr(sa.back, name), getattr(sb.back, name)), name

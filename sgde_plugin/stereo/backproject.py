@@ -136,6 +136,14 @@ class BackProjection:
         return depth.reshape(self.shape), conf.reshape(self.shape)
 
 
+def camera_rays(camera: Camera, shared: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """`camera`'s `ray_grid()`, made once per intrinsics (models compare by value) in `shared`."""
+    key = ("rays", camera.intrinsics)
+    if key not in shared:
+        shared[key] = camera.intrinsics.ray_grid()
+    return shared[key]
+
+
 def backprojection(
     camera: Camera, rect: Camera, baseline_m: float, x_range: tuple[int, int] | None = None,
     rays: torch.Tensor | None = None, ray_valid: torch.Tensor | None = None, possible: np.ndarray | None = None,
@@ -160,17 +168,20 @@ def _backprojection(
     if rays is None or ray_valid is None:
         rays, ray_valid = camera.intrinsics.ray_grid()
     R = torch.as_tensor(rect.sensor_to_ego[:3, :3].T @ camera.sensor_to_ego[:3, :3], dtype=rays.dtype)
-    r = rays.reshape(-1, 3)
-    q = r @ R.T  # rays in the rectified frame
     K = rect.intrinsics.K
+    h, w = rect.height, x1 - x0
+    reach = None if possible is None else cv2.dilate(possible.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    # only the original pixels inside `box` can land in the canvas (or in its reach): the rest are never rotated
+    r0, r1, c0, c1 = _candidate_box(camera, R.numpy(), K, _canvas_window(x0, x1, h, reach), rays, ray_valid)
+    r = rays[r0:r1, c0:c1].reshape(-1, 3)
+    q = r @ R.T  # rays in the rectified frame
     front = q[:, 2] > 1e-6
     zq = torch.where(front, q[:, 2], torch.ones_like(q[:, 2]))
     u = K[0, 0] * q[:, 0] / zq + K[0, 2]
     v = K[1, 1] * q[:, 1] / zq + K[1, 2]
-    inside = front & ray_valid.reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= rect.height - 1)
-    index = torch.nonzero(inside).reshape(-1)
-    if possible is not None:
-        reach = cv2.dilate(possible.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    inside = front & ray_valid[r0:r1, c0:c1].reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= h - 1)
+    index = torch.nonzero(inside).reshape(-1)  # into the box
+    if reach is not None:
         col = np.clip(np.rint(u[index].numpy() - x0).astype(np.intp), 0, reach.shape[1] - 1)
         row = np.clip(np.rint(v[index].numpy()).astype(np.intp), 0, reach.shape[0] - 1)
         index = index[torch.from_numpy(reach[row, col])]
@@ -187,20 +198,90 @@ def _backprojection(
     map1, map2 = cv2.convertMaps(map_x.reshape(rows, _ROW), map_y.reshape(rows, _ROW), cv2.CV_16SC2)
     fine_x, fine_y = cv2.convertMaps(map1, map2, cv2.CV_32FC1)  # the same positions, as float maps
     # each map row's footprint: the integer corners remap uses (map1) and the next column and row
-    h, w = rect.height, x1 - x0
     cx, cy = map1[..., 0].astype(np.int64), map1[..., 1].astype(np.int64)
-    c0, c1 = np.clip(cx.min(1), 0, w - 1), np.clip(cx.max(1) + 1, 0, w - 1) + 1
-    r0, r1 = np.clip(cy.min(1), 0, h - 1), np.clip(cy.max(1) + 1, 0, h - 1) + 1
-    corners = np.stack([r1 * (w + 1) + c1, r0 * (w + 1) + c1, r1 * (w + 1) + c0, r0 * (w + 1) + c0], axis=1)
+    cc0, cc1 = np.clip(cx.min(1), 0, w - 1), np.clip(cx.max(1) + 1, 0, w - 1) + 1
+    rr0, rr1 = np.clip(cy.min(1), 0, h - 1), np.clip(cy.max(1) + 1, 0, h - 1) + 1
+    corners = np.stack([rr1 * (w + 1) + cc1, rr0 * (w + 1) + cc1, rr1 * (w + 1) + cc0, rr0 * (w + 1) + cc0], axis=1)
+    local = index.numpy().astype(np.int64)
     return BackProjection(
         shape=(camera.height, camera.width),
-        index=index.numpy().astype(np.int64),
+        index=(local // (c1 - c0) + r0) * camera.width + local % (c1 - c0) + c0 if n else local,
         map_x=fine_x,
         map_y=fine_y,
         kfb=(k.numpy() * K[0, 0] * baseline_m).astype(np.float32),
         core=(h, w),
         corners=corners,
     )
+
+
+def _canvas_window(x0: int, x1: int, h: int, reach: np.ndarray | None) -> tuple[float, float, float, float] | None:
+    """(u_lo, u_hi, v_lo, v_hi): the canvas positions a kept pixel can have (inside columns [x0, x1) and rows, and
+    rounding into `reach`, a core-column mask); None when `reach` is empty."""
+    u_lo, u_hi, v_lo, v_hi = float(x0), float(x1 - 1), 0.0, float(h - 1)
+    if reach is None:
+        return u_lo, u_hi, v_lo, v_hi
+    cols, rows = np.flatnonzero(reach.any(axis=0)), np.flatnonzero(reach.any(axis=1))
+    if cols.size == 0:
+        return None
+    return (max(u_lo, x0 + cols[0] - 0.5), min(u_hi, x0 + cols[-1] + 0.5),
+            max(v_lo, rows[0] - 0.5), min(v_hi, rows[-1] + 0.5))
+
+
+def _valid_edge(valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) of the valid pixels with a 4-neighbour that is not valid or outside the image."""
+    h, w = valid.shape
+    if valid.all():  # the image's frame
+        rows, cols = np.arange(h), np.arange(w)
+        return (np.concatenate([np.zeros(w, np.intp), np.full(w, h - 1), rows, rows]),
+                np.concatenate([cols, cols, np.zeros(h, np.intp), np.full(h, w - 1)]))
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    inner = cv2.erode(valid.view(np.uint8), cross, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    return np.nonzero(valid & ~inner)
+
+
+def _candidate_box(
+    camera: Camera, R: np.ndarray, K: np.ndarray, window: tuple[float, float, float, float] | None,
+    rays: torch.Tensor, ray_valid: torch.Tensor, step_px: float = 1.0,
+) -> tuple[int, int, int, int]:
+    """(r0, r1, c0, c1): a block of `camera`'s pixels holding every valid pixel whose ray (rotated by `R` into the
+    rectified frame of intrinsics `K`) lands in the canvas `window`; (0, 0, 0, 0) when none can.
+
+    The pixels that land there form a region whose edge is either the window's edge seen by the camera or the edge
+    of the valid pixels; its extremes are on that edge. So the block bounds the window's border, sampled every
+    `step_px` canvas pixels and projected into the camera, and the valid-edge pixels that land in the window, widened
+    by the largest gap between projected samples and two pixels (a pixel next to the border lies within one).
+    """
+    if window is None:
+        return 0, 0, 0, 0
+    u_lo, u_hi, v_lo, v_hi = window
+    H, W = camera.height, camera.width
+    us = np.linspace(u_lo, u_hi, max(2, int(np.ceil((u_hi - u_lo) / step_px)) + 1))
+    vs = np.linspace(v_lo, v_hi, max(2, int(np.ceil((v_hi - v_lo) / step_px)) + 1))
+    sides = [(us, np.full_like(us, v_lo)), (us, np.full_like(us, v_hi)), (np.full_like(vs, u_lo), vs),
+             (np.full_like(vs, u_hi), vs)]
+    K_inv = np.linalg.inv(K)
+    points, gap = [], 0.0
+    for su, sv in sides:
+        d = np.stack([su, sv, np.ones_like(su)], axis=1) @ K_inv.T @ R  # canvas rays in the camera frame
+        px, ok = camera.intrinsics.project(d)
+        both = ok[1:] & ok[:-1]  # neighbouring samples that both land in the image
+        if both.any():
+            gap = max(gap, float(np.abs(np.diff(px, axis=0)[both]).max()))
+        points.append(px[ok])
+    ev, eu = _valid_edge(ray_valid.numpy())
+    q = rays.numpy()[ev, eu] @ R.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        eu_c, ev_c = K[0, 0] * q[:, 0] / q[:, 2] + K[0, 2], K[1, 1] * q[:, 1] / q[:, 2] + K[1, 2]
+    lands = (q[:, 2] > 1e-6) & (eu_c >= u_lo) & (eu_c <= u_hi) & (ev_c >= v_lo) & (ev_c <= v_hi)
+    points.append(np.stack([eu[lands], ev[lands]], axis=1).astype(np.float64))
+    pts = np.concatenate(points)
+    pts = pts[(pts[:, 0] > -1) & (pts[:, 0] < W) & (pts[:, 1] > -1) & (pts[:, 1] < H)]
+    if len(pts) == 0:
+        return 0, 0, 0, 0
+    m = gap + 2.0
+    c0, c1 = max(0, int(np.floor(pts[:, 0].min() - m))), min(W, int(np.ceil(pts[:, 0].max() + m)) + 1)
+    r0, r1 = max(0, int(np.floor(pts[:, 1].min() - m))), min(H, int(np.ceil(pts[:, 1].max() + m)) + 1)
+    return (r0, r1, c0, c1) if r1 > r0 and c1 > c0 else (0, 0, 0, 0)
 
 
 def fuse_into(

@@ -29,7 +29,7 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..pairs import left_right
 from ..rig import Rig
-from .backproject import BackProjection, backprojection
+from .backproject import BackProjection, backprojection, camera_rays
 from .checks import match_box
 from .config import PriorConfig
 from .filters import (
@@ -172,19 +172,20 @@ def _reach(own: Camera, other: Camera, other_valid: np.ndarray, own_valid: np.nd
     return reach & own_valid
 
 
-def plan_sweeps(rig: Rig, config: PriorConfig) -> list[SweepPlan]:
-    """Views, warp maps, homographies and backward maps of every pair of `rig` that the sweep can match."""
+def plan_sweeps(rig: Rig, config: PriorConfig, shared: dict | None = None) -> list[SweepPlan]:
+    """Views, warp maps, homographies and backward maps of every pair of `rig` that the sweep can match;
+    `shared` as in `planning.plan_pairs` (the cameras' ray grids, kept for planning the moved rig again)."""
     with torch_threads(1):
         plans = []
-        rays: dict[str, tuple] = {}
+        shared = {} if shared is None else shared
         for a, b in rig.pairs:
-            plan = _plan_sweep(*left_right(rig.camera(a), rig.camera(b)), config, rays)
+            plan = _plan_sweep(*left_right(rig.camera(a), rig.camera(b)), config, shared)
             if plan is not None:
                 plans.append(plan)
         return plans
 
 
-def _plan_sweep(left: Camera, right: Camera, config: PriorConfig, rays: dict[str, tuple]) -> SweepPlan | None:
+def _plan_sweep(left: Camera, right: Camera, config: PriorConfig, shared: dict) -> SweepPlan | None:
     """One pair's `SweepPlan` (None when the cameras share a centre or their views never meet)."""
     baseline = float(np.linalg.norm(right.sensor_to_ego[:3, 3] - left.sensor_to_ego[:3, 3]))
     if baseline < 1e-6:
@@ -206,9 +207,7 @@ def _plan_sweep(left: Camera, right: Camera, config: PriorConfig, rays: dict[str
         box = match_box(reach, halo=grow)
         if box is None:
             return None
-        if cam.name not in rays:
-            rays[cam.name] = cam.intrinsics.ray_grid()
-        back = backprojection(cam, own, baseline, (0, own.width), *rays[cam.name], possible=reach)
+        back = backprojection(cam, own, baseline, (0, own.width), *camera_rays(cam, shared), possible=reach)
         floor = ground_disparity(own, baseline, (0, own.width), ratio) if ratio > 0 else None
         sides.append(SweepSide(
             camera=cam.name, view=own, warp=warps[k], back=back, crop=box,

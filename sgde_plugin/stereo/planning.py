@@ -18,7 +18,7 @@ from ..cameras import Camera
 from ..geometry import rotation_vector
 from ..pairs import left_right
 from ..rig import Rig
-from .backproject import BackProjection, backprojection
+from .backproject import BackProjection, backprojection, camera_rays
 from .config import PriorConfig
 from .rectify import (
     RectifiedPair,
@@ -127,13 +127,15 @@ def facing_half(fisheye: Camera, other: Camera, scale: float = 1.0) -> Camera:
     return max(halves, key=lambda h: float(h.sensor_to_ego[:3, 2] @ axis))
 
 
-def plan_pairs(rig: Rig, config: PriorConfig) -> list[PairPlan]:
+def plan_pairs(rig: Rig, config: PriorConfig, shared: dict | None = None) -> list[PairPlan]:
     """Rectified geometry, warp maps and backward maps of every pair of `rig` that rectifies.
 
     With `fisheye: tiled`, a pair with a fisheye whose shared field reaches beyond `max_elevation_deg` about
-    the baseline gives one plan per tile (`baseline_tiles`), each back-projecting only the field it owns."""
+    the baseline gives one plan per tile (`baseline_tiles`), each back-projecting only the field it owns.
+    `shared` keeps what depends on a camera's intrinsics alone (ray grids, rim masks, keyed by the intrinsics):
+    pass the same dict to plan the rig again with its cameras moved."""
     geo = config.geometry
-    shared: dict = {}  # per-camera arrays made once for all the pairs: ray grids, rim masks
+    shared = {} if shared is None else shared
     plans = []
     for a, b in rig.pairs:
         cam_a, cam_b = rig.camera(a), rig.camera(b)
@@ -182,7 +184,7 @@ def _plan_pair(
 
     def warp_maps(src: Camera, dst: Camera) -> WarpMaps:
         rim = default_rim_px(src)
-        key = ("rim", src.name, rim)  # the source's rim mask, shared by all the warps from it
+        key = ("rim", src.intrinsics, rim)  # the source's rim mask, shared by all the warps from it
         if rim > 0 and key not in shared:
             shared[key] = rim_inner(src, rim)
         return WarpMaps.between(src, dst, rim, inner=shared.get(key))
@@ -198,9 +200,7 @@ def _plan_pair(
     for orig, pre, warp, seen, rect, can, core in zip(
         origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible, inner
     ):
-        if ("rays", orig.name) not in shared:
-            shared[("rays", orig.name)] = orig.intrinsics.ray_grid()
-        grid, ok = shared[("rays", orig.name)]
+        grid, ok = camera_rays(orig, shared)
         if own is not None:
             ok = ok & owned_rays(orig, grid, rectified_rotation(pair.left, pair.right), *own)
         back = backprojection(orig, rect, pair.baseline_m, pair.core_x, grid, ok, possible=can)
