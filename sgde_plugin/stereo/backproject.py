@@ -181,10 +181,12 @@ def _backprojection(
     v = K[1, 1] * q[:, 1] / zq + K[1, 2]
     inside = front & ray_valid[r0:r1, c0:c1].reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= h - 1)
     index = torch.nonzero(inside).reshape(-1)  # into the box
+    us, vs = u[index].numpy(), v[index].numpy()
     if reach is not None:
-        col = np.clip(np.rint(u[index].numpy() - x0).astype(np.intp), 0, reach.shape[1] - 1)
-        row = np.clip(np.rint(v[index].numpy()).astype(np.intp), 0, reach.shape[0] - 1)
-        index = index[torch.from_numpy(reach[row, col])]
+        col = np.clip(np.rint(us - x0).astype(np.intp), 0, reach.shape[1] - 1)
+        row = np.clip(np.rint(vs).astype(np.intp), 0, reach.shape[0] - 1)
+        near = reach[row, col]
+        index, us, vs = index[torch.from_numpy(near)], us[near], vs[near]
     # point = ray * t with t * q_z = rectified z; depth = t (range) or t * r_z (pinhole z)
     k = 1.0 / zq[index]
     if not camera.intrinsics.depth_is_range:
@@ -193,8 +195,8 @@ def _backprojection(
     rows = max(1, -(-n // _ROW))
     map_x = np.full(rows * _ROW, -1.0, np.float32)
     map_y = np.full(rows * _ROW, -1.0, np.float32)
-    map_x[:n] = u[index].numpy() - x0
-    map_y[:n] = v[index].numpy()
+    map_x[:n] = us - x0
+    map_y[:n] = vs
     map1, map2 = cv2.convertMaps(map_x.reshape(rows, _ROW), map_y.reshape(rows, _ROW), cv2.CV_16SC2)
     fine_x, fine_y = cv2.convertMaps(map1, map2, cv2.CV_32FC1)  # the same positions, as float maps
     # each map row's footprint: the integer corners remap uses (map1) and the next column and row
