@@ -180,17 +180,17 @@ def _backprojection(
     u = K[0, 0] * q[:, 0] / zq + K[0, 2]
     v = K[1, 1] * q[:, 1] / zq + K[1, 2]
     inside = front & ray_valid[r0:r1, c0:c1].reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= h - 1)
-    index = torch.nonzero(inside).reshape(-1)  # into the box
-    us, vs = u[index].numpy(), v[index].numpy()
+    index = torch.nonzero(inside).reshape(-1).numpy()  # into the box
+    us, vs = u.numpy()[index], v.numpy()[index]
     if reach is not None:
         col = np.clip(np.rint(us - x0).astype(np.intp), 0, reach.shape[1] - 1)
         row = np.clip(np.rint(vs).astype(np.intp), 0, reach.shape[0] - 1)
-        near = reach[row, col]
-        index, us, vs = index[torch.from_numpy(near)], us[near], vs[near]
+        near = reach.reshape(-1)[row * reach.shape[1] + col]
+        index, us, vs = index[near], us[near], vs[near]
     # point = ray * t with t * q_z = rectified z; depth = t (range) or t * r_z (pinhole z)
-    k = 1.0 / zq[index]
+    k = 1.0 / zq.numpy()[index]
     if not camera.intrinsics.depth_is_range:
-        k = k * r[index, 2]
+        k = k * r[:, 2].numpy()[index]
     n = int(index.shape[0])
     rows = max(1, -(-n // _ROW))
     map_x = np.full(rows * _ROW, -1.0, np.float32)
@@ -204,13 +204,13 @@ def _backprojection(
     cc0, cc1 = np.clip(cx.min(1), 0, w - 1), np.clip(cx.max(1) + 1, 0, w - 1) + 1
     rr0, rr1 = np.clip(cy.min(1), 0, h - 1), np.clip(cy.max(1) + 1, 0, h - 1) + 1
     corners = np.stack([rr1 * (w + 1) + cc1, rr0 * (w + 1) + cc1, rr1 * (w + 1) + cc0, rr0 * (w + 1) + cc0], axis=1)
-    local = index.numpy().astype(np.int64)
+    local = index.astype(np.int64)
     return BackProjection(
         shape=(camera.height, camera.width),
         index=(local // (c1 - c0) + r0) * camera.width + local % (c1 - c0) + c0 if n else local,
         map_x=fine_x,
         map_y=fine_y,
-        kfb=(k.numpy() * K[0, 0] * baseline_m).astype(np.float32),
+        kfb=(k * K[0, 0] * baseline_m).astype(np.float32),
         core=(h, w),
         corners=corners,
     )
