@@ -171,7 +171,7 @@ def _backprojection(
     K = rect.intrinsics.K
     h, w = rect.height, x1 - x0
     reach = None if possible is None else cv2.dilate(possible.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    # only the original pixels inside `box` can land in the canvas (or in its reach): the rest are never rotated
+    # only the block of original pixels that can land in the canvas (or in its reach) is rotated
     r0, r1, c0, c1 = _candidate_box(camera, R.numpy(), K, _canvas_window(x0, x1, h, reach), rays, ray_valid)
     r = rays[r0:r1, c0:c1].reshape(-1, 3)
     q = r @ R.T  # rays in the rectified frame
