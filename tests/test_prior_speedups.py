@@ -399,6 +399,13 @@ def test_backprojection_on_the_candidate_box_equals_the_whole_image(scene, monke
             for name in ("index", "map_x", "map_y", "kfb", "corners"):
                 assert np.array_equal(getattr(sa.back, name), getattr(sb.back, name)), name
     assert min((r1 - r0) * (c1 - c0) / area for (r0, r1, c0, c1), area in boxes) < 0.7  # it does restrict
+    # a canvas where no pixel can hold a disparity: nothing to rotate, the same empty map either way
+    plan, cam = whole[0], rig.camera(whole[0].left.camera)
+    none = np.zeros(plan.left.back.core, bool)
+    empty = backproject.backprojection(cam, plan.pair.rect_left, plan.pair.baseline_m, plan.pair.core_x, possible=none)
+    monkeypatch.setattr(backproject, "_candidate_box", real)
+    boxed = backproject.backprojection(cam, plan.pair.rect_left, plan.pair.baseline_m, plan.pair.core_x, possible=none)
+    assert boxed.count == empty.count == 0 and np.array_equal(boxed.map_x, empty.map_x)
 
 
 def test_a_moved_rig_planned_again_with_the_kept_ray_grids_equals_a_fresh_plan(monkeypatch):
