@@ -437,3 +437,22 @@ def test_a_moved_rig_planned_again_with_the_kept_ray_grids_equals_a_fresh_plan(m
         for sa, sb in ((a.left, b.left), (a.right, b.right)):
             for name in ("index", "map_x", "map_y", "kfb"):
                 assert np.array_equal(getattr(sa.back, name), getattr(sb.back, name)), name
+
+
+@pytest.mark.parametrize("scene", [pinhole_scene, fisheye_scene])
+def test_pairs_planned_in_a_thread_pool_equal_the_serial_plans(scene):
+    """`plan_pairs(..., pool=...)` (PriorBuilder with threads > 1) gives the serial plans, in order, bit for bit."""
+    from sgde_plugin.stereo.planning import plan_pairs
+
+    rig, _, _ = scene()
+    rig = Rig(rig.cameras, (tuple(rig.camera_names), tuple(reversed(rig.camera_names))), ())  # two pairs
+    serial = plan_pairs(rig, PriorConfig())
+    with ThreadPoolExecutor(2) as pool:
+        pooled = plan_pairs(rig, PriorConfig(), {}, pool)
+    assert len(serial) == len(pooled) >= 2
+    for a, b in zip(serial, pooled):
+        assert (a.left.camera, a.right.camera) == (b.left.camera, b.right.camera)
+        for sa, sb in ((a.left, b.left), (a.right, b.right)):
+            assert np.array_equal(sa.valid, sb.valid) and np.array_equal(sa.rect.map1, sb.rect.map1)
+            for name in ("index", "map_x", "map_y", "kfb", "corners"):
+                assert np.array_equal(getattr(sa.back, name), getattr(sb.back, name)), name

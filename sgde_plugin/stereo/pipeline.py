@@ -75,7 +75,10 @@ class PriorBuilder:
         if self.config.sweeps:
             return plan_sweeps(rig, self.config, self._per_camera)
         with torch_threads(1):
-            return plan_pairs(rig, self.config, self._per_camera)
+            if self.threads == 1:
+                return plan_pairs(rig, self.config, self._per_camera)
+            with opencv_threads(1), ThreadPoolExecutor(self.threads) as pool:  # pairs in parallel, as in build
+                return plan_pairs(rig, self.config, self._per_camera, pool)
 
     def _plan_for(self, rig: Rig) -> None:
         """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""

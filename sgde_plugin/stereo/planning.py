@@ -8,6 +8,7 @@ pixels each camera sees and the backward maps from the original cameras to the c
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import cv2
@@ -18,6 +19,7 @@ from ..cameras import Camera
 from ..geometry import rotation_vector
 from ..pairs import left_right
 from ..rig import Rig
+from ..threads import torch_threads
 from .backproject import BackProjection, backprojection, camera_rays
 from .config import PriorConfig
 from .rectify import (
@@ -127,16 +129,18 @@ def facing_half(fisheye: Camera, other: Camera, scale: float = 1.0) -> Camera:
     return max(halves, key=lambda h: float(h.sensor_to_ego[:3, 2] @ axis))
 
 
-def plan_pairs(rig: Rig, config: PriorConfig, shared: dict | None = None) -> list[PairPlan]:
+def plan_pairs(rig: Rig, config: PriorConfig, shared: dict | None = None, pool: Executor | None = None
+               ) -> list[PairPlan]:
     """Rectified geometry, warp maps and backward maps of every pair of `rig` that rectifies.
 
     With `fisheye: tiled`, a pair with a fisheye whose shared field reaches beyond `max_elevation_deg` about
     the baseline gives one plan per tile (`baseline_tiles`), each back-projecting only the field it owns.
     `shared` keeps what depends on a camera's intrinsics alone (ray grids, rim masks, keyed by the intrinsics):
-    pass the same dict to plan the rig again with its cameras moved."""
+    pass the same dict to plan the rig again with its cameras moved. With a thread `pool` the pairs are planned
+    in its threads (the same plans, in the same order)."""
     geo = config.geometry
     shared = {} if shared is None else shared
-    plans = []
+    jobs = []
     for a, b in rig.pairs:
         cam_a, cam_b = rig.camera(a), rig.camera(b)
         src_a, src_b = cam_a, cam_b
@@ -147,8 +151,27 @@ def plan_pairs(rig: Rig, config: PriorConfig, shared: dict | None = None) -> lis
                 src_b = facing_half(cam_b, cam_a)
         for pair, own in _rectified(src_a, src_b, config):
             orig_l, orig_r = (cam_a, cam_b) if pair.left is src_a else (cam_b, cam_a)
-            plans.append(_plan_pair(pair, orig_l, orig_r, own, config, shared))
-    return plans
+            jobs.append((pair, orig_l, orig_r, own))
+    if pool is None:
+        return [_plan_pair(*job, config, shared) for job in jobs]
+    for cam in {c.intrinsics: c for job in jobs for c in job[1:3]}.values():  # made first: no two threads make it
+        camera_rays(cam, shared)
+        _rim_mask(cam, shared)
+
+    def planned(job: tuple) -> PairPlan:
+        with torch_threads(1):  # torch's thread count is per thread: a pool thread starts with the default
+            return _plan_pair(*job, config, shared)
+
+    return list(pool.map(planned, jobs))
+
+
+def _rim_mask(src: Camera, shared: dict) -> tuple[int, np.ndarray | None]:
+    """(rim px, `rim_inner` mask or None) of a warp's source camera, made once per intrinsics in `shared`."""
+    rim = default_rim_px(src)
+    key = ("rim", src.intrinsics, rim)  # the source's rim mask, shared by all the warps from it
+    if rim > 0 and key not in shared:
+        shared[key] = rim_inner(src, rim)
+    return rim, shared.get(key)
 
 
 def _rectified(
@@ -183,11 +206,8 @@ def _plan_pair(
     origs, pres, rects = (orig_l, orig_r), [], []
 
     def warp_maps(src: Camera, dst: Camera) -> WarpMaps:
-        rim = default_rim_px(src)
-        key = ("rim", src.intrinsics, rim)  # the source's rim mask, shared by all the warps from it
-        if rim > 0 and key not in shared:
-            shared[key] = rim_inner(src, rim)
-        return WarpMaps.between(src, dst, rim, inner=shared.get(key))
+        rim, inner = _rim_mask(src, shared)
+        return WarpMaps.between(src, dst, rim, inner=inner)
 
     for src, rect, orig in zip((pair.left, pair.right), (pair.rect_left, pair.rect_right), origs):
         pres.append(None if src is orig else warp_maps(orig, src))
