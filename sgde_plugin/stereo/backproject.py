@@ -174,11 +174,7 @@ def _backprojection(
     # only the block of original pixels that can land in the canvas (or in its reach) is rotated
     r0, r1, c0, c1 = _candidate_box(camera, R.numpy(), K, _canvas_window(x0, x1, h, reach), rays, ray_valid)
     r = rays[r0:r1, c0:c1].reshape(-1, 3)
-    q = r @ R.T  # rays in the rectified frame
-    front = q[:, 2] > 1e-6
-    zq = torch.where(front, q[:, 2], torch.ones_like(q[:, 2]))
-    u = K[0, 0] * q[:, 0] / zq + K[0, 2]
-    v = K[1, 1] * q[:, 1] / zq + K[1, 2]
+    front, zq, u, v = _rectified_pixels(r, R, K)
     inside = front & ray_valid[r0:r1, c0:c1].reshape(-1) & (u >= x0) & (u <= x1 - 1) & (v >= 0) & (v <= h - 1)
     index = torch.nonzero(inside).reshape(-1).numpy()  # into the box
     us, vs = u.numpy()[index], v.numpy()[index]
@@ -214,6 +210,15 @@ def _backprojection(
         core=(h, w),
         corners=corners,
     )
+
+
+def _rectified_pixels(rays: torch.Tensor, R: torch.Tensor, K: np.ndarray
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(in front, rectified z (1 behind), u, v) of camera rays (N, 3) turned by R into a rectified camera K."""
+    q = rays @ R.T
+    front = q[:, 2] > 1e-6
+    zq = torch.where(front, q[:, 2], torch.ones_like(q[:, 2]))
+    return front, zq, K[0, 0] * q[:, 0] / zq + K[0, 2], K[1, 1] * q[:, 1] / zq + K[1, 2]
 
 
 def _canvas_window(x0: int, x1: int, h: int, reach: np.ndarray | None) -> tuple[float, float, float, float] | None:
@@ -271,10 +276,8 @@ def _candidate_box(
             gap = max(gap, float(np.abs(np.diff(px, axis=0)[both]).max()))
         points.append(px[ok])
     ev, eu = _valid_edge(ray_valid.numpy())
-    q = rays.numpy()[ev, eu] @ R.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        eu_c, ev_c = K[0, 0] * q[:, 0] / q[:, 2] + K[0, 2], K[1, 1] * q[:, 1] / q[:, 2] + K[1, 2]
-    lands = (q[:, 2] > 1e-6) & (eu_c >= u_lo) & (eu_c <= u_hi) & (ev_c >= v_lo) & (ev_c <= v_hi)
+    front, _, eu_c, ev_c = (t.numpy() for t in _rectified_pixels(rays[ev, eu], torch.as_tensor(R), K))
+    lands = front & (eu_c >= u_lo) & (eu_c <= u_hi) & (ev_c >= v_lo) & (ev_c <= v_hi)
     points.append(np.stack([eu[lands], ev[lands]], axis=1).astype(np.float64))
     pts = np.concatenate(points)
     pts = pts[(pts[:, 0] > -1) & (pts[:, 0] < W) & (pts[:, 1] > -1) & (pts[:, 1] < H)]
