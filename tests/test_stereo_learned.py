@@ -162,13 +162,20 @@ def _abs_rel(root, cache, tmp_path, capsys):
     return json.loads(out.read_text())["overall"]
 
 
-def test_raft_stereo_checkpoint_through_the_cli_gives_the_true_prior(scene, raft, tmp_path, capsys):
+def test_raft_stereo_checkpoint_through_the_cli_gives_the_true_prior(scene, raft, tmp_path, capsys, monkeypatch):
+    import sgde_plugin.stereo.config as prior_config
+
     root, true_rig, rig = scene
     ckpt, stand_in = raft
     cache = tmp_path / "cache"
     argv = ["prior", str(root), "--rig", true_rig, "--workers", "1", "--matcher", "raft-stereo",
             "--matcher-path", str(ckpt)]
+    loads = []
+    real_load = prior_config.load_learned_matcher
+    monkeypatch.setattr(prior_config, "load_learned_matcher", lambda *a, **k: loads.append(a) or real_load(*a, **k))
     assert cli_main([*argv, "--out", str(cache)]) == 0
+    assert len(loads) == 1  # the build's check that the file loads gives the in-process builder its matcher
+    monkeypatch.setattr(prior_config, "load_learned_matcher", real_load)
     captured = capsys.readouterr()
     assert "1 frames built" in captured.out and "warning" not in captured.err
     overall = _abs_rel(root, cache, tmp_path, capsys)

@@ -35,6 +35,7 @@ from ..errors import InputError
 from ..progress import progress
 from ..rig import Rig, load_frame_images
 from ..stereo.config import PriorConfig
+from ..stereo.matchers import Matcher
 from ..stereo.pipeline import PriorBuilder
 from .backends import Location, location_name
 from .creation import prepare_scene, remove_partial_files
@@ -49,20 +50,24 @@ ENGINES = ("local", "ray")
 class PriorCompute:
     """The default compute: load a frame's images (and the rig's masks) and run PriorBuilder."""
 
-    def __init__(self, rig: Rig, config: ConfigLike):
+    def __init__(self, rig: Rig, config: ConfigLike, matcher: Matcher | None = None):
+        """`matcher`: one `config.make_matcher()` already made, used by the first builder in this process (worker
+        processes make their own)."""
         self.rig = rig
         self.config = config
+        self._matcher = matcher
         self._builder: PriorBuilder | None = None
         self._masks: dict[str, np.ndarray] | None = None
         self.last_warning: str | None = None  # the builder's note when the last frame's prior came out empty
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_builder": None, "_masks": None}
+        return {**self.__dict__, "_builder": None, "_masks": None, "_matcher": None}
 
     def __call__(self, frame_id: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Priors of all cameras of one frame."""
         if self._builder is None:
-            self._builder = PriorBuilder(self.rig, self.config)
+            self._builder = PriorBuilder(self.rig, self.config, matcher=self._matcher)
+            self._matcher = None
             masks = {c: self.rig.load_mask(c) for c in self.rig.camera_names}
             self._masks = {c: m for c, m in masks.items() if m is not None} or None
         maps = self._builder.build(load_frame_images(self.rig, frame_id), self._masks, frame=frame_id)
@@ -326,8 +331,9 @@ def build_cache(
     scene = scene or default_scene_name(rig)
     parts = dict(fingerprint_parts(rig, config, algo_version))
     parts["config_document"] = config_document(config, algo_version)
+    matcher = None
     if compute is None and isinstance(config, PriorConfig) and config.learned:
-        config.make_matcher()  # a matcher file that does not load is refused before the cache exists
+        matcher = config.make_matcher()  # a matcher file that does not load is refused before the cache exists
     start = time.perf_counter()
     with writer_lock(out, wait_s) as locked:
         try:
@@ -336,7 +342,8 @@ def build_cache(
         except OSError as exc:  # a read-only file system, a full disk, no permission
             raise InputError(location_name(out), None, f"cannot write ({exc.strerror or exc})") from None
         if compute is None:
-            compute = PriorCompute(rig, config)
+            in_process = engine == "local" and int(workers) <= 1  # worker processes load their own matcher
+            compute = PriorCompute(rig, config, matcher if in_process else None)
         writer = SceneWriter(out, scene, storage_options, expect=parts["fingerprint"])
         tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
         workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)

@@ -53,7 +53,10 @@ class PriorMap:
 class PriorBuilder:
     """Builds depth priors for every camera of one rig; all per-rig geometry is computed here once."""
 
-    def __init__(self, rig: Rig, config: PriorConfig | None = None, threads: int | None = None):
+    def __init__(self, rig: Rig, config: PriorConfig | None = None, threads: int | None = None,
+                 matcher: Matcher | None = None):
+        """Plan `rig`'s pairs for `config`; `matcher`: one `config.make_matcher()` already made (a learned one is
+        then not loaded again)."""
         self.rig = rig  # the geometry planned: `rig`, or `rig.as_captured(frame)` of the last frame built
         self._base_rig = rig
         self.config = config or PriorConfig()
@@ -61,7 +64,7 @@ class PriorBuilder:
         # a learned matcher parallelises inside torch instead
         default = cv2.getNumThreads() if self.config.matcher.name in ("sgbm", "planesweep") else 1
         self.threads = max(1, default if threads is None else int(threads))
-        self.matcher: Matcher | None = None if self.config.sweeps else self.config.make_matcher()
+        self.matcher: Matcher | None = None if self.config.sweeps else matcher or self.config.make_matcher()
         self.last_timings: dict[str, float] = {}
         self.last_warning: str | None = None  # set by build() when the frame's prior came out empty
         self._static_masks = {c: rig.load_mask(c) for c in rig.camera_names} if rig.root is not None else {}
