@@ -294,6 +294,12 @@ def _note_warning(
         raise StrictWarningError(f"frame {frame_id}: {text}")
 
 
+def _learned_matcher(config: ConfigLike) -> Matcher | None:
+    """A learned matcher of `config`, loaded now (so a file that does not load is refused before the cache exists);
+    None for SGBM or the plane sweep. A build in this process uses it; worker processes load their own."""
+    return config.make_matcher() if isinstance(config, PriorConfig) and config.learned else None
+
+
 def build_cache(
     rig: Rig,
     out: Location,
@@ -331,9 +337,7 @@ def build_cache(
     scene = scene or default_scene_name(rig)
     parts = dict(fingerprint_parts(rig, config, algo_version))
     parts["config_document"] = config_document(config, algo_version)
-    matcher = None
-    if compute is None and isinstance(config, PriorConfig) and config.learned:
-        matcher = config.make_matcher()  # a matcher file that does not load is refused before the cache exists
+    matcher = _learned_matcher(config) if compute is None else None  # a file that does not load: no cache made
     start = time.perf_counter()
     with writer_lock(out, wait_s) as locked:
         try:
@@ -342,8 +346,7 @@ def build_cache(
         except OSError as exc:  # a read-only file system, a full disk, no permission
             raise InputError(location_name(out), None, f"cannot write ({exc.strerror or exc})") from None
         if compute is None:
-            in_process = engine == "local" and int(workers) <= 1  # worker processes load their own matcher
-            compute = PriorCompute(rig, config, matcher if in_process else None)
+            compute = PriorCompute(rig, config, matcher if engine == "local" and int(workers) <= 1 else None)
         writer = SceneWriter(out, scene, storage_options, expect=parts["fingerprint"])
         tasks = [(i, plan.frame_ids[i]) for i in plan.pending]
         workers = max(1, int(workers)) if engine == "local" or not ray_address else int(workers)
