@@ -130,3 +130,6 @@ def test_prior_needs_the_per_camera_poses_under_sequential_capture() -> None:
     # this small size); placing every camera at the frame's pose makes it several times worse
     assert own <= 1.25 * sync and frame_only >= 4 * own
     assert out["arms"][ARMS[1]]["coverage"] >= 0.9 * out["arms"][ARMS[0]]["coverage"]
+    # the builder planned the mount geometry; the frame's captures moved it, so its one frame was planned again
+    assert [out["arms"][k]["replanned_frames"] for k in ARMS] == [0, 1, 0]
+    assert out["arms"][ARMS[1]]["seconds_per_replan"] > 0 and out["arms"][ARMS[0]]["seconds_per_replan"] is None

@@ -83,12 +83,15 @@ class PriorBuilder:
             with opencv_threads(1), ThreadPoolExecutor(self.threads) as pool:  # pairs in parallel, as in build
                 return plan_pairs(rig, self.config, self._per_camera, pool)
 
-    def _plan_for(self, rig: Rig) -> None:
-        """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm)."""
+    def _plan_for(self, rig: Rig) -> float:
+        """Re-plan the pairs for `rig`'s extrinsics unless they match the planned ones (1e-4 rad, 1 mm); the
+        seconds it took (0 when kept)."""
         if all(same_pose(rig.camera(c).sensor_to_ego, self.rig.camera(c).sensor_to_ego) for c in rig.camera_names):
-            return
+            return 0.0
+        t0 = time.perf_counter()
         self.rig = rig
         self.plans = self._plan(rig)
+        return time.perf_counter() - t0
 
     def _prepare(self, images: Mapping[str, np.ndarray], on_demand: bool = False) -> Mapping[str, np.ndarray]:
         """Check sizes and convert to the matching colour space (grey unless `color`); `on_demand`: check now,
@@ -204,8 +207,7 @@ class PriorBuilder:
         happens in pair order, so the result does not depend on the thread count.
         """
         t_start = time.perf_counter()
-        if frame is not None:
-            self._plan_for(self._base_rig.as_captured(frame))
+        plan_s = 0.0 if frame is None else self._plan_for(self._base_rig.as_captured(frame))
         masks = self._masks(masks)
         parallel = self.threads > 1 and len(self.plans) > 1
         grey = self._prepare(images, on_demand=parallel)  # in parallel: converted in the pair threads
@@ -229,6 +231,7 @@ class PriorBuilder:
                                      pool if parallel else None, costs)
         timings = {k: sum(t[k] for _, t in results) for k in ("warp", "match", "backproject")}
         timings["fuse"] = sum(fuse_s)
+        timings["plan"] = plan_s  # re-planning for this frame's capture geometry (0: the plans were kept)
         timings["total"] = time.perf_counter() - t_start
         self.last_timings = timings
         self.last_warning = self._empty_frame_warning(out)

@@ -247,10 +247,10 @@ def camera_maps(
     border of the source's valid area (the fisheye rim) count as invalid; `inner` may pass
     `rim_inner(src, rim_px)` computed once for several warps of the same source.
     """
+    R = src.sensor_to_ego[:3, :3].T @ dst.sensor_to_ego[:3, :3]
     with torch_threads(1):
-        rays, ok = dst.intrinsics.ray_grid(dtype)
-        R = torch.as_tensor(src.sensor_to_ego[:3, :3].T @ dst.sensor_to_ego[:3, :3], dtype=dtype)
-        uv, valid = src.intrinsics.project_torch(rays @ R.T)
+        points, ok = _turned_rays(dst, R, dtype)
+        uv, valid = src.intrinsics.project_torch(points)
     valid = valid & ok
     map_x = uv[..., 0].numpy().astype(np.float32)
     map_y = uv[..., 1].numpy().astype(np.float32)
@@ -264,6 +264,21 @@ def camera_maps(
     map_x[~valid] = -1e4
     map_y[~valid] = -1e4
     return map_x, map_y, valid
+
+
+def _turned_rays(dst: Camera, R: np.ndarray, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Directions (H, W, 3; not unit) of `dst`'s pixel centres turned by R into the source frame, and validity."""
+    intr = dst.intrinsics
+    if isinstance(intr, Pinhole) and intr.dist is None:
+        # an undistorted pinhole (every canvas and virtual view): pixel -> direction is one matrix, applied
+        # row by column instead of building the (H, W, 3) ray grid and turning it
+        M = torch.as_tensor(R @ np.linalg.inv(intr.K), dtype=dtype)
+        u = torch.arange(intr.width, dtype=dtype)
+        v = torch.arange(intr.height, dtype=dtype)
+        points = (v[:, None] * M[:, 1] + M[:, 2])[:, None, :] + u[None, :, None] * M[:, 0]
+        return points, torch.ones(points.shape[:2], dtype=torch.bool)
+    rays, ok = intr.ray_grid(dtype)
+    return rays @ torch.as_tensor(R.T, dtype=dtype), ok
 
 
 @dataclass(frozen=True, eq=False)
