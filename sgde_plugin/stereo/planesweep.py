@@ -29,7 +29,6 @@ import numpy as np
 from ..cameras import Camera, Pinhole
 from ..pairs import left_right
 from ..rig import Rig
-from ..threads import blas_threads
 from .backproject import BackProjection, backprojection, camera_rays
 from .checks import match_box
 from .config import PriorConfig
@@ -176,7 +175,7 @@ def _reach(own: Camera, other: Camera, other_valid: np.ndarray, own_valid: np.nd
 def plan_sweeps(rig: Rig, config: PriorConfig, shared: dict | None = None) -> list[SweepPlan]:
     """Views, warp maps, homographies and backward maps of every pair of `rig` that the sweep can match;
     `shared` as in `planning.plan_pairs` (the cameras' ray grids, kept for planning the moved rig again)."""
-    with torch_threads(1), blas_threads(1):  # see `plan_pairs`
+    with torch_threads(1):
         plans = []
         shared = {} if shared is None else shared
         for a, b in rig.pairs:

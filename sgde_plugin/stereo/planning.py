@@ -19,8 +19,8 @@ from ..cameras import Camera
 from ..geometry import rotation_vector
 from ..pairs import left_right
 from ..rig import Rig
-from ..threads import blas_threads, torch_threads
-from .backproject import BackProjection, backprojection, camera_rays
+from ..threads import torch_threads
+from .backproject import BackProjection, backprojection, camera_rays, turned
 from .config import PriorConfig
 from .rectify import (
     RectifiedPair,
@@ -138,13 +138,8 @@ def plan_pairs(rig: Rig, config: PriorConfig, shared: dict | None = None, pool: 
     `shared` keeps what depends on a camera's intrinsics alone (ray grids, rim masks, keyed by the intrinsics):
     pass the same dict to plan the rig again with its cameras moved. With a thread `pool` the pairs are planned
     in its threads (the same plans, in the same order)."""
-    with blas_threads(1):  # the rays are turned by (N, 3) x (3, 3) products: BLAS threads only spin on them
-        return _plan_pairs(rig, config, {} if shared is None else shared, pool)
-
-
-def _plan_pairs(rig: Rig, config: PriorConfig, shared: dict, pool: Executor | None) -> list[PairPlan]:
-    """`plan_pairs` with BLAS at one thread."""
     geo = config.geometry
+    shared = {} if shared is None else shared
     jobs = []
     for a, b in rig.pairs:
         cam_a, cam_b = rig.camera(a), rig.camera(b)
@@ -292,8 +287,8 @@ def owned_rays(camera: Camera, rays: torch.Tensor, rotation: np.ndarray, own_lo:
     """Bool (H, W): pixels of `camera` (unit `rays`, its `ray_grid`) whose ray is turned by an angle in
     [own_lo, own_hi) about the x axis of the frame `rotation` (ego columns), from its z towards its y."""
     R = rotation.T @ camera.sensor_to_ego[:3, :3]
-    q = np.dot(rays.numpy().reshape(-1, 3), R[1:].T)  # y and z in the frame: BLAS (see `plan_pairs`)
-    angle = np.arctan2(q[:, 0], q[:, 1]).reshape(rays.shape[:-1])
+    q = turned(rays.numpy().reshape(-1, 3), R)
+    angle = np.arctan2(q[:, 1], q[:, 2]).reshape(rays.shape[:-1])
     return torch.from_numpy((angle >= own_lo) & (angle < own_hi))
 
 
