@@ -120,22 +120,33 @@ def _shared_sector(
     """
     a = np.linspace(-math.tan(max_az), math.tan(max_az), samples)
     b = np.linspace(-math.tan(max_el), math.tan(max_el), _rows(samples, max_az, max_el))
-    aa, bb = np.meshgrid(a, b)
-    rays = np.stack([aa, bb, np.ones_like(aa)], axis=-1)
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
     seen = []
-    for cam in (left, right):
-        _, valid = cam.intrinsics.project(rays @ _rotation_into(cam, rotation).T)
-        seen.append(valid)
+    for cam in (left, right):  # projection is scale-free: the directions (a, b, 1) need no normalising
+        with torch_threads(1):
+            _, valid = cam.intrinsics.project_torch(_plane_directions(_rotation_into(cam, rotation), a, b))
+        seen.append(valid.numpy())
     both = seen[0] & seen[1]
     if not both.any():
         return None
     rows = np.nonzero(both.any(axis=1))[0]
     cols = np.nonzero(both.any(axis=0))[0]
     widest = 0.0
-    for r in np.nonzero(seen[0].any(axis=1) & seen[1].any(axis=1))[0]:
-        widest = max(widest, a[np.nonzero(seen[0][r])[0].max()] - a[np.nonzero(seen[1][r])[0].min()])
+    r = np.nonzero(seen[0].any(axis=1) & seen[1].any(axis=1))[0]
+    if r.size:  # per row: the last direction the left camera sees minus the first one the right camera sees
+        last_left = a.size - 1 - np.argmax(seen[0][r, ::-1], axis=1)
+        first_right = np.argmax(seen[1][r], axis=1)
+        widest = max(widest, float((a[last_left] - a[first_right]).max()))
     return float(a[cols[0]]), float(a[cols[-1]]), float(b[rows[0]]), float(b[rows[-1]]), widest
+
+
+def _plane_directions(M: np.ndarray, xs: np.ndarray, ys: np.ndarray, dtype: torch.dtype = torch.float64
+                      ) -> torch.Tensor:
+    """M @ (x, y, 1) for every (x, y) of the grid ys x xs: (len(ys), len(xs), 3), applied row by column (no (N, 3)
+    grid is built and turned)."""
+    M = torch.as_tensor(M, dtype=dtype)
+    x = torch.as_tensor(xs, dtype=dtype)
+    y = torch.as_tensor(ys, dtype=dtype)
+    return (y[:, None] * M[:, 1] + M[:, 2])[:, None, :] + x[None, :, None] * M[:, 0]
 
 
 def rectify_pair(
@@ -272,10 +283,7 @@ def _turned_rays(dst: Camera, R: np.ndarray, dtype: torch.dtype) -> tuple[torch.
     if isinstance(intr, Pinhole) and intr.dist is None:
         # an undistorted pinhole (every canvas and virtual view): pixel -> direction is one matrix, applied
         # row by column instead of building the (H, W, 3) ray grid and turning it
-        M = torch.as_tensor(R @ np.linalg.inv(intr.K), dtype=dtype)
-        u = torch.arange(intr.width, dtype=dtype)
-        v = torch.arange(intr.height, dtype=dtype)
-        points = (v[:, None] * M[:, 1] + M[:, 2])[:, None, :] + u[None, :, None] * M[:, 0]
+        points = _plane_directions(R @ np.linalg.inv(intr.K), np.arange(intr.width), np.arange(intr.height), dtype)
         return points, torch.ones(points.shape[:2], dtype=torch.bool)
     rays, ok = intr.ray_grid(dtype)
     return rays @ torch.as_tensor(R.T, dtype=dtype), ok
