@@ -143,11 +143,11 @@ class Rig:
         raise KeyError(name)
 
     def frame(self, frame_id: str) -> Frame:
-        """The frame with id `frame_id`."""
+        """The frame with id `frame_id` (InputError, one line, when the rig has none)."""
         for fr in self.frames:
             if fr.id == frame_id:
                 return fr
-        raise KeyError(frame_id)
+        raise InputError(self.root, f"frames/{frame_id}", f"not a frame of the rig ({len(self.frames)} frames)")
 
     def capture(self, frame: str | Frame, camera: str) -> Capture:
         """Camera `camera`'s capture in a frame (id or Frame): its time, the ego pose then, its pose in the world.

@@ -231,3 +231,20 @@ def test_mean_transform_of_rotations_about_one_axis_and_of_translations():
     assert abs(rotation_angle_deg(two[:3, :3].T @ rodrigues(axis * 2 * a))) < 1e-6
     assert np.isclose(np.linalg.det(m[:3, :3]), 1.0) and np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0])
 
+
+
+def test_an_unknown_frame_is_one_line_not_a_key_error() -> None:
+    """A frame id the rig does not have is bad input: `Rig.frame`, `as_captured`, `load_image` and
+    `PriorBuilder.build(frame=)` say so in one line (InputError) naming the key."""
+    from sgde_plugin.errors import InputError
+    from sgde_plugin.stereo.pipeline import PriorBuilder, PriorConfig
+
+    rig = make_rig()
+    assert rig.frame("000001").id == "000001"
+    for call in (lambda: rig.frame("nope"), lambda: rig.as_captured("nope"), lambda: rig.load_image("nope", RING[0])):
+        with pytest.raises(InputError) as err:
+            call()
+        assert err.value.line() == "frames/nope: not a frame of the rig (2 frames)"
+    images = {c: np.zeros((H, W, 3), np.uint8) for c in RING}
+    with pytest.raises(InputError, match="frames/nope: not a frame"):
+        PriorBuilder(rig, PriorConfig(), threads=1).build(images, frame="nope")
