@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..cameras import Camera
-from .rectify import torch_threads
+from .rectify import torch_threads, turned
 
 _ROW = 64  # sample positions are laid out in rows of this length for cv2.remap; a frame remaps only the rows
 # whose footprint in the canvas holds a usable disparity
@@ -210,12 +210,6 @@ def _backprojection(
         core=(h, w),
         corners=corners,
     )
-
-
-def turned(vectors: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """float64 (N, 3) `vectors` @ R.T, by OpenCV's per-element transform (about 4x BLAS on one thread, 20x torch's
-    (N, 3) @ (3, 3), and no BLAS thread pool to spin)."""
-    return cv2.transform(np.ascontiguousarray(vectors, np.float64).reshape(-1, 1, 3), R).reshape(-1, 3)
 
 
 def _rectified_pixels(rays: np.ndarray, R: np.ndarray, K: np.ndarray

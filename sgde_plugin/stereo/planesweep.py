@@ -40,8 +40,8 @@ from .filters import (
     remove_islands,
     window_scores,
 )
-from .planning import facing_half, ground_disparity
-from .rectify import WarpMaps, default_rim_px, torch_threads
+from .planning import facing_half, ground_disparity, shared_warp_maps
+from .rectify import WarpMaps, torch_threads
 
 MIN_PLANES = 16
 _INVALID = 2.0  # cost of a plane whose warped window leaves the neighbour's view (ZNCC -1 costs 2 as well)
@@ -192,7 +192,7 @@ def _plan_sweep(left: Camera, right: Camera, config: PriorConfig, shared: dict) 
         return None
     scale = config.geometry.scale
     views = (sweep_view(left, right, scale), sweep_view(right, left, scale))
-    warps = tuple(WarpMaps.between(cam, view, default_rim_px(cam)) for cam, view in zip((left, right), views))
+    warps = tuple(shared_warp_maps(cam, view, shared) for cam, view in zip((left, right), views))
     g = config.geometry
     q_near = nearest_shared_inverse_depth(views, (warps[0].valid, warps[1].valid), 1 / g.max_depth, 1 / g.min_depth)
     if q_near is None:

@@ -20,7 +20,7 @@ from ..geometry import rotation_vector
 from ..pairs import left_right
 from ..rig import Rig
 from ..threads import torch_threads
-from .backproject import BackProjection, backprojection, camera_rays, turned
+from .backproject import BackProjection, backprojection, camera_rays
 from .config import PriorConfig
 from .rectify import (
     RectifiedPair,
@@ -30,6 +30,7 @@ from .rectify import (
     rectify_pair,
     rim_inner,
     tile_pair,
+    turned,
 )
 from .virtual import virtual_pinholes
 
@@ -174,6 +175,12 @@ def _rim_mask(src: Camera, shared: dict) -> tuple[int, np.ndarray | None]:
     return rim, shared.get(key)
 
 
+def shared_warp_maps(src: Camera, dst: Camera, shared: dict) -> WarpMaps:
+    """`WarpMaps.between(src, dst)` with the fisheye rim left out, `src`'s rim mask made once in `shared`."""
+    rim, inner = _rim_mask(src, shared)
+    return WarpMaps.between(src, dst, rim, inner=inner)
+
+
 def _rectified(
     src_a: Camera, src_b: Camera, config: PriorConfig
 ) -> list[tuple[RectifiedPair, tuple[float, float] | None]]:
@@ -205,13 +212,9 @@ def _plan_pair(
     border = config.sgbm.block_size // 2 + config.filters.border_px
     origs, pres, rects = (orig_l, orig_r), [], []
 
-    def warp_maps(src: Camera, dst: Camera) -> WarpMaps:
-        rim, inner = _rim_mask(src, shared)
-        return WarpMaps.between(src, dst, rim, inner=inner)
-
     for src, rect, orig in zip((pair.left, pair.right), (pair.rect_left, pair.rect_right), origs):
-        pres.append(None if src is orig else warp_maps(orig, src))
-        rects.append(warp_maps(src, rect))
+        pres.append(None if src is orig else shared_warp_maps(orig, src, shared))
+        rects.append(shared_warp_maps(src, rect, shared))
     valid = [_side_valid(p, r) for p, r in zip(pres, rects)]
     inner = [inner_core(v, border) for v in valid]
     possible = _possible(pair, *inner)
@@ -314,4 +317,4 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
 
 
 __all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core", "owned_rays",
-           "plan_pairs", "same_pose", "shared_turns"]
+           "plan_pairs", "same_pose", "shared_turns", "shared_warp_maps"]
