@@ -116,6 +116,23 @@ def test_gradcheck_float64(name: str) -> None:
     assert torch.autograd.gradcheck(lambda p: cam.unproject_torch(p)[0], (uv,))
 
 
+def test_ocam_gives_the_same_bits_with_and_without_gradients() -> None:
+    """The polynomial runs in place when no gradient is wanted (maps) and out of place for autograd: same values."""
+    cam = CAMERAS["ocam"]
+    rng = np.random.default_rng(5)
+    uv = torch.tensor(rng.uniform([0, 0], [cam.width - 1, cam.height - 1], size=(4000, 2)))
+    with torch.no_grad():
+        rays, valid = cam.unproject_torch(uv)
+        plain, ok = cam.project_torch(rays * 5.0)
+    pts = (rays * 5.0).requires_grad_()
+    tracked, ok_tracked = cam.project_torch(pts)
+    rays_tracked, _ = cam.unproject_torch(uv.clone().requires_grad_())
+    assert valid.sum() > 3000 and torch.equal(ok, ok_tracked)
+    assert torch.equal(plain, tracked.detach()) and torch.equal(rays, rays_tracked.detach())
+    tracked[ok].sum().backward()
+    assert torch.isfinite(pts.grad).all() and pts.grad.abs().sum() > 0
+
+
 def test_resized_camera_sees_the_same_rays() -> None:
     for name, cam in CAMERAS.items():
         small = cam.resized(cam.width // 2, cam.height // 2)

@@ -11,6 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+import torch
 from test_stereo_prior import fisheye_scene, pinhole_scene
 
 from sgde_plugin.rig import Rig
@@ -486,3 +487,30 @@ def test_warp_maps_from_an_undistorted_pinhole_equal_the_ray_grid_path():
         np.testing.assert_allclose(fast[1][fast[2]], slow[1][slow[2]], atol=1e-6, rtol=0)
         seen += int(fast[2].sum())
     assert seen > 24 * 90 * 70 * 0.2
+
+
+def test_a_tile_owner_tested_on_the_landing_pixels_equals_the_whole_image_mask():
+    """A fisheye tile keeps the pixels whose turn about the baseline it owns: testing only the pixels that land in
+    the canvas (`owner=`) gives the backward map of the whole image's ownership mask, bit for bit."""
+    from sgde_plugin.stereo.backproject import Owner, backprojection, camera_rays
+    from sgde_plugin.stereo.planning import _rectified
+    from sgde_plugin.stereo.rectify import rectified_rotation
+    from sgde_plugin.synth.sequence import synth_sequence
+
+    fish = synth_sequence("urban-fisheye", 1, seed=3, scale=0.25).rig_true
+    a_name, b_name = fish.pairs[0]
+    tiles = _rectified(fish.camera(a_name), fish.camera(b_name), PriorConfig.from_settings(fisheye="tiled"))
+    assert len(tiles) == 3
+    shared = {}
+    for pair, own in tiles:
+        for src, rect in ((pair.left, pair.rect_left), (pair.right, pair.rect_right)):
+            cam = fish.camera(src.name)
+            owner = Owner.of(cam, rectified_rotation(pair.left, pair.right), *own)
+            rays, ok = camera_rays(cam, shared)
+            mine = ok & torch.from_numpy(owner.owns(rays.numpy().reshape(-1, 3)).reshape(ok.shape))
+            a = backprojection(cam, rect, pair.baseline_m, pair.core_x, rays, ok, owner=owner)
+            b = backprojection(cam, rect, pair.baseline_m, pair.core_x, rays, mine)
+            whole = backprojection(cam, rect, pair.baseline_m, pair.core_x, rays, ok)
+            for name in ("index", "map_x", "map_y", "kfb", "corners"):
+                assert np.array_equal(getattr(a, name), getattr(b, name)), name
+            assert 100 < a.count < 0.95 * whole.count  # the owner keeps a part of what lands in the canvas

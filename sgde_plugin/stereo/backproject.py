@@ -136,6 +136,27 @@ class BackProjection:
         return depth.reshape(self.shape), conf.reshape(self.shape)
 
 
+@dataclass(frozen=True)
+class Owner:
+    """The rays a tile back-projects: those turned by an angle in [lo, hi) about the x axis of the frame
+    `rotation` (ego columns), from its z towards its y; `to_frame` takes the camera's rays into that frame."""
+
+    to_frame: np.ndarray  # (3, 3): rotation.T @ camera's sensor-to-ego rotation
+    lo: float
+    hi: float
+
+    @staticmethod
+    def of(camera: Camera, rotation: np.ndarray, lo: float, hi: float) -> Owner:
+        """The owner of turns [lo, hi) about `rotation`'s x axis, for `camera`'s rays."""
+        return Owner(rotation.T @ camera.sensor_to_ego[:3, :3], lo, hi)
+
+    def owns(self, rays: np.ndarray) -> np.ndarray:
+        """Bool (N,): which camera rays (N, 3) are owned."""
+        q = turned(rays, self.to_frame)
+        angle = np.arctan2(q[:, 1], q[:, 2])
+        return (angle >= self.lo) & (angle < self.hi)
+
+
 def camera_rays(camera: Camera, shared: dict) -> tuple[torch.Tensor, torch.Tensor]:
     """`camera`'s `ray_grid()`, made once per intrinsics (models compare by value) in `shared`."""
     key = ("rays", camera.intrinsics)
@@ -147,6 +168,7 @@ def camera_rays(camera: Camera, shared: dict) -> tuple[torch.Tensor, torch.Tenso
 def backprojection(
     camera: Camera, rect: Camera, baseline_m: float, x_range: tuple[int, int] | None = None,
     rays: torch.Tensor | None = None, ray_valid: torch.Tensor | None = None, possible: np.ndarray | None = None,
+    owner: Owner | None = None,
 ) -> BackProjection:
     """Backward map of `camera` into the rectified pinhole `rect` (same optical centre).
 
@@ -154,16 +176,16 @@ def backprojection(
     stored relative to x0 (disparity maps of the core columns). `rays`/`ray_valid` may pass the
     camera's precomputed `ray_grid()` to share it between pairs. `possible` (bool, core columns)
     marks the rectified pixels that can ever hold a disparity; pixels whose bilinear footprint
-    misses them all are left out.
+    misses them all are left out. With an `owner`, only the pixels it owns are kept (a tile of a fisheye pair).
     """
     x0, x1 = (0, rect.width) if x_range is None else x_range
     with torch_threads(1):
-        return _backprojection(camera, rect, baseline_m, x0, x1, rays, ray_valid, possible)
+        return _backprojection(camera, rect, baseline_m, x0, x1, rays, ray_valid, possible, owner)
 
 
 def _backprojection(
     camera: Camera, rect: Camera, baseline_m: float, x0: int, x1: int, rays: torch.Tensor | None,
-    ray_valid: torch.Tensor | None, possible: np.ndarray | None,
+    ray_valid: torch.Tensor | None, possible: np.ndarray | None, owner: Owner | None,
 ) -> BackProjection:
     if rays is None or ray_valid is None:
         rays, ray_valid = camera.intrinsics.ray_grid()
@@ -183,6 +205,9 @@ def _backprojection(
         row = np.clip(np.rint(vs).astype(np.intp), 0, reach.shape[0] - 1)
         near = reach.reshape(-1)[row * reach.shape[1] + col]
         index, us, vs = index[near], us[near], vs[near]
+    if owner is not None:  # tested on the landing pixels only: the whole image would cost a fisheye re-plan 20 %
+        mine = owner.owns(r[index])
+        index, us, vs = index[mine], us[mine], vs[mine]
     # point = ray * t with t * q_z = rectified z; depth = t (range) or t * r_z (pinhole z)
     k = 1.0 / zq[index]
     if not camera.intrinsics.depth_is_range:

@@ -13,14 +13,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import torch
 
 from ..cameras import Camera
 from ..geometry import rotation_vector
 from ..pairs import left_right
 from ..rig import Rig
 from ..threads import torch_threads
-from .backproject import BackProjection, backprojection, camera_rays
+from .backproject import BackProjection, Owner, backprojection, camera_rays
 from .config import PriorConfig
 from .rectify import (
     RectifiedPair,
@@ -30,7 +29,6 @@ from .rectify import (
     rectify_pair,
     rim_inner,
     tile_pair,
-    turned,
 )
 from .virtual import virtual_pinholes
 
@@ -223,10 +221,9 @@ def _plan_pair(
     for orig, pre, warp, seen, rect, can, core in zip(
         origs, pres, rects, valid, (pair.rect_left, pair.rect_right), possible, inner
     ):
-        grid, ok = camera_rays(orig, shared)
-        if own is not None:
-            ok = ok & owned_rays(orig, grid, rectified_rotation(pair.left, pair.right), *own)
-        back = backprojection(orig, rect, pair.baseline_m, pair.core_x, grid, ok, possible=can)
+        owner = None if own is None else Owner.of(orig, rectified_rotation(pair.left, pair.right), *own)
+        back = backprojection(orig, rect, pair.baseline_m, pair.core_x, *camera_rays(orig, shared), possible=can,
+                              owner=owner)
         ratio = config.filters.ground_depth_ratio
         floor = ground_disparity(rect, pair.baseline_m, pair.core_x, ratio) if ratio > 0 else None
         sides.append(PairSide(camera=orig.name, pre=pre, rect=warp, valid=seen, back=back, inner=core[:, x0:x1],
@@ -286,15 +283,6 @@ def baseline_tiles(
     return tiles
 
 
-def owned_rays(camera: Camera, rays: torch.Tensor, rotation: np.ndarray, own_lo: float, own_hi: float) -> torch.Tensor:
-    """Bool (H, W): pixels of `camera` (unit `rays`, its `ray_grid`) whose ray is turned by an angle in
-    [own_lo, own_hi) about the x axis of the frame `rotation` (ego columns), from its z towards its y."""
-    R = rotation.T @ camera.sensor_to_ego[:3, :3]
-    q = turned(rays.numpy().reshape(-1, 3), R)
-    angle = np.arctan2(q[:, 1], q[:, 2]).reshape(rays.shape[:-1])
-    return torch.from_numpy((angle >= own_lo) & (angle < own_hi))
-
-
 def _side_valid(pre: WarpMaps | None, rect: WarpMaps) -> np.ndarray:
     """Canvas pixels a side's camera sees (through its virtual pinhole, if any)."""
     valid = rect.valid.copy()
@@ -316,5 +304,5 @@ def _possible(pair: RectifiedPair, inner_l: np.ndarray, inner_r: np.ndarray) -> 
     return (vl & right_reach)[:, x0:x1] > 0, (vr & left_reach)[:, x0:x1] > 0
 
 
-__all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core", "owned_rays",
+__all__ = ["PairPlan", "PairSide", "baseline_tiles", "facing_half", "ground_disparity", "inner_core",
            "plan_pairs", "same_pose", "shared_turns", "shared_warp_maps"]
