@@ -371,7 +371,11 @@ class Ocam(CameraModel):
         for _ in range(self.newton_iterations):  # solve poly(rho) * n - z * rho = 0
             g = _polyval(poly, rho) * n - z * rho
             dg = _polyval(dpoly, rho) * n - z
-            rho = (rho - g / torch.where(dg.abs() < 1e-12, torch.ones_like(dg), dg)).clamp_min(0)
+            step = g / torch.where(dg.abs() < 1e-12, torch.ones_like(dg), dg)
+            rho = (rho - step).clamp_min(0)
+            # steps at rounding level everywhere: the next ones would only move rho by its last bits
+            if bool((step.abs() <= 16 * torch.finfo(rho.dtype).eps * (1 + rho)).all()):
+                break
         ns = torch.where(on_axis, torch.ones_like(norm), norm)
         xs = torch.where(on_axis, torch.zeros_like(rho), rho * xo / ns)
         ys = torch.where(on_axis, torch.zeros_like(rho), rho * yo / ns)

@@ -116,6 +116,20 @@ def test_gradcheck_float64(name: str) -> None:
     assert torch.autograd.gradcheck(lambda p: cam.unproject_torch(p)[0], (uv,))
 
 
+def test_ocam_projection_converges_from_a_rough_inverse_polynomial() -> None:
+    """Projection starts from inv_poly and refines on poly until its steps are at rounding level: a start pixels
+    off (inv_poly shifted by 3 px) still comes back to the unprojected pixel to 1e-11 px, as an exact start does."""
+    exact = CAMERAS["ocam"]
+    rough_inv = np.array(exact.inv_poly, dtype=float)
+    rough_inv[0] += 3.0
+    rough = Ocam(exact.width, exact.height, exact.poly, rough_inv, exact.center, exact.affine, exact.fov_deg)
+    uv = pixel_grid(exact.width, exact.height).reshape(-1, 2).numpy()[::7]
+    rays, valid = exact.unproject(uv)
+    for cam in (exact, rough):
+        back, ok = cam.project(rays * 9.0)
+        assert ok[valid].all() and np.abs(back[valid] - uv[valid]).max() < 1e-11
+
+
 def test_ocam_gives_the_same_bits_with_and_without_gradients() -> None:
     """The polynomial runs in place when no gradient is wanted (maps) and out of place for autograd: same values."""
     cam = CAMERAS["ocam"]
