@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 
 import cv2
 import numpy as np
@@ -126,6 +127,26 @@ def test_camera_without_overlap_gets_an_empty_map_and_bad_input_is_refused():
         builder.build({"FRONT": images["FRONT"]})
     with pytest.raises(InputError, match="masks"):
         builder.build({**images, "BACK": images["FRONT"]}, {"FRONT": np.ones((10, 10), bool)})
+
+
+def test_grey_rgb_and_rgba_images_give_one_prior_and_other_arrays_are_one_line():
+    """HxW, HxWx1, HxWx3 and HxWx4 (alpha dropped) images of one scene give the same prior; an array that is not an
+    image (None, two channels, a batch) is an InputError naming the camera and the shape, not an OpenCV error."""
+    rig, images, _ = pinhole_scene()
+    builder = PriorBuilder(rig, PriorConfig())
+    rgb = {k: np.dstack([v, v // 2, 255 - v]) for k, v in ((k, v[..., 0]) for k, v in images.items())}
+    grey = {k: cv2.cvtColor(v, cv2.COLOR_RGB2GRAY) for k, v in rgb.items()}
+    ref = builder.build(rgb)
+    assert max((ref[k].depth > 0).mean() for k in ref) > 0.02
+    for variant in (grey, {k: v[..., None] for k, v in grey.items()},
+                    {k: np.dstack([v, np.full(v.shape[:2], 7, np.uint8)]) for k, v in rgb.items()}):
+        out = builder.build(variant)
+        assert all(np.array_equal(out[k].depth, ref[k].depth) for k in ref)
+    bad_images = ((None, "()"), (rgb["FRONT"][..., :2], "(270, 480, 2)"), (rgb["FRONT"][None], "(1, 270, 480, 3)"))
+    for bad, shape in bad_images:
+        with pytest.raises(InputError, match=rf"images\[FRONT\]: must be HxW \(grey\) or HxWx3 \(RGB\), got shape "
+                           rf"{re.escape(shape)}"):
+            builder.build({**rgb, "FRONT": bad})
 
 
 def test_config_dict_tracks_everything_that_changes_the_output(tmp_path):

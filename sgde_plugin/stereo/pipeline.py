@@ -103,10 +103,15 @@ class PriorBuilder:
         return {name: self._matching_image(img) for name, img in checked.items()}
 
     def _checked(self, images: Mapping[str, np.ndarray], name: str) -> np.ndarray:
-        """`images[name]` as an array, or InputError when it is missing, of the wrong size or not uint8."""
+        """`images[name]` as an HxW (grey) or HxWx3 (RGB) array, or InputError when it is missing, not an image
+        (HxWx1 is grey, HxWx4 is RGBA: its alpha is dropped), of the wrong size or not uint8."""
         if name not in images:
             raise InputError(None, f"images[{name}]", "missing")
         img = np.asarray(images[name])
+        if img.ndim == 3 and img.shape[2] in (1, 4):
+            img = img[..., 0] if img.shape[2] == 1 else img[..., :3]
+        if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 3)):
+            raise InputError(None, f"images[{name}]", f"must be HxW (grey) or HxWx3 (RGB), got shape {img.shape}")
         cam = self.rig.camera(name)
         if img.shape[:2] != (cam.height, cam.width):
             raise InputError(
