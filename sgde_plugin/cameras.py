@@ -27,15 +27,11 @@ def _param(value: np.ndarray, like: Tensor) -> Tensor:
 
 def _polyval(coeffs: Tensor, x: Tensor) -> Tensor:
     """sum_i coeffs[i] * x**i (ascending powers), Horner."""
-    if torch.is_grad_enabled() and (coeffs.requires_grad or x.requires_grad):
-        out = torch.zeros_like(x) + coeffs[-1]
-        for c in reversed(coeffs[:-1]):
-            out = out * x + c
-        return out
-    # the same operations in place: a fisheye's maps spent most of their time allocating each step's result
+    # in place unless autograd needs each step's result: a fisheye's maps spent most of their time allocating them
+    in_place = not (torch.is_grad_enabled() and (coeffs.requires_grad or x.requires_grad))
     out = torch.zeros_like(x).add_(coeffs[-1])
     for c in reversed(coeffs[:-1]):
-        out.mul_(x).add_(c)
+        out = out.mul_(x).add_(c) if in_place else out * x + c
     return out
 
 

@@ -136,7 +136,7 @@ class BackProjection:
         return depth.reshape(self.shape), conf.reshape(self.shape)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Owner:
     """The rays a tile back-projects: those turned by an angle in [lo, hi) about the x axis of the frame
     `rotation` (ego columns), from its z towards its y; `to_frame` takes the camera's rays into that frame."""
